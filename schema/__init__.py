@@ -1,0 +1,90 @@
+"""The contract of bssrdf-db: simulation specs (pydantic), stored-table schemas (Arrow), metadata.
+
+No torch and no web framework here: workers, the service and clients all import this package.
+
+>>> from schema import load_spec
+>>> spec = load_spec("examples/skimmilk.json")        # doctest: +SKIP
+>>> [c.albedo for c in spec.channels()]               # doctest: +SKIP
+
+Modules: :mod:`schema.spec` (SimulationSpec, load_spec), :mod:`schema.medium` (MediumSpec,
+ChannelOptics), :mod:`schema.presets` (Jensen et al. 2001 materials), :mod:`schema.bins`
+(BinSpec, edges), :mod:`schema.tables` (Arrow schemas, metadata keys), :mod:`schema.errors`,
+:mod:`schema.constraints` (range checks), :mod:`schema.export` (JSON Schema file).
+"""
+
+from .bins import (
+    DEFAULT_MAX_MFP,
+    MAX_TOTAL_BINS,
+    BinSpec,
+    CosThetaOBins,
+    PhiOBins,
+    RadialBins,
+    ThetaSBins,
+    radial_edges,
+    uniform_edges,
+)
+from .errors import ShardIndexError, SpecError, format_validation_error
+from .export import SPEC_SCHEMA_PATH, spec_json_schema_text, write_spec_json_schema
+from .medium import ChannelOptics, MediumSpec
+from .presets import PRESET_CHANNELS, PRESETS, Preset, get_preset
+from .spec import MAX_INCIDENCE, MAX_PHOTONS, SimulationSpec, load_spec, parse_spec
+from .tables import (
+    BINS_SCHEMA,
+    COLUMN_DOCS,
+    COMPONENTS,
+    ESTIMATORS,
+    META_RUN,
+    META_SCHEMA_VERSION,
+    META_SPEC,
+    RADIAL_SCHEMA,
+    SCHEMA_VERSION,
+    SUMMARY_SCHEMA,
+    TABLE_SCHEMAS,
+    table_metadata,
+)
+
+__all__ = [
+    # specs
+    "SimulationSpec",
+    "MediumSpec",
+    "ChannelOptics",
+    "BinSpec",
+    "RadialBins",
+    "ThetaSBins",
+    "CosThetaOBins",
+    "PhiOBins",
+    "load_spec",
+    "parse_spec",
+    "radial_edges",
+    "uniform_edges",
+    "MAX_PHOTONS",
+    "MAX_INCIDENCE",
+    "MAX_TOTAL_BINS",
+    "DEFAULT_MAX_MFP",
+    # presets
+    "PRESETS",
+    "PRESET_CHANNELS",
+    "Preset",
+    "get_preset",
+    # errors
+    "SpecError",
+    "ShardIndexError",
+    "format_validation_error",
+    # JSON Schema
+    "SPEC_SCHEMA_PATH",
+    "spec_json_schema_text",
+    "write_spec_json_schema",
+    # stored tables
+    "SCHEMA_VERSION",
+    "META_SPEC",
+    "META_RUN",
+    "META_SCHEMA_VERSION",
+    "ESTIMATORS",
+    "COMPONENTS",
+    "COLUMN_DOCS",
+    "RADIAL_SCHEMA",
+    "BINS_SCHEMA",
+    "SUMMARY_SCHEMA",
+    "TABLE_SCHEMAS",
+    "table_metadata",
+]

@@ -1,0 +1,159 @@
+"""Bin layout of the tallies (ARCHITECTURE.md, "Bins and tallies").
+
+A spatial bin is an annular sector of the surface z = 0 around the entry point:
+r in [r_lo, r_hi) [mm] x theta_s in [theta_lo, theta_hi) [rad], theta_s measured from +x (the
+incidence plane) over [0, 2 pi). A directional bin is uniform in cos(theta_o) over [0, 1]
+(theta_o from the outward normal +z) and in phi_o over [0, 2 pi) (phi_o from the outward radial
+direction at the exit point). Every bin is half-open [lo, hi); angles are wrapped into [0, 2 pi)
+before binning.
+
+Defaults: 48 log-spaced radial bins out to 16 transport mean free paths (per channel), first
+inner edge at 1e-3 of the maximum; theta_s "auto" (1 bin at normal incidence, 12 otherwise);
+8 bins in cos(theta_o); 8 bins in phi_o.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic_core import PydanticCustomError
+
+from .constraints import Interval
+
+__all__ = [
+    "RadialBins",
+    "ThetaSBins",
+    "CosThetaOBins",
+    "PhiOBins",
+    "BinSpec",
+    "radial_edges",
+    "uniform_edges",
+    "MAX_TOTAL_BINS",
+    "DEFAULT_MAX_MFP",
+    "THETA_S_AUTO_OBLIQUE",
+    "TWO_PI",
+]
+
+TWO_PI = 2.0 * math.pi
+
+MAX_TOTAL_BINS = 2**24
+"""Limit on n_r * n_theta_s * n_cos * n_phi * n_channels * n_incidence (memory of the tallies)."""
+
+DEFAULT_MAX_MFP = 16.0
+"""Default radial extent, in transport mean free paths 1 / sigma_t'."""
+
+THETA_S_AUTO_OBLIQUE = 12
+"""theta_s bin count chosen by "auto" when some incidence angle is not 0."""
+
+_CONFIG = ConfigDict(frozen=True, extra="forbid")
+
+
+class RadialBins(BaseModel):
+    """Radial bins r in [r_lo, r_hi) [mm], ``count`` of them from 0 to the maximum radius.
+
+    The maximum is either ``max_mm`` (same for every channel) or ``max_mfp`` transport mean free
+    paths 1 / sigma_t' (per channel); exactly one, default ``max_mfp = 16``.
+    ``spacing = "log"`` (default): edges [0, r_min, r_min q, ..., r_max], geometric from
+    r_min = ``min_fraction`` * r_max to r_max, ``count`` bins in total including [0, r_min).
+    ``spacing = "linear"``: ``count`` equal bins (``min_fraction`` unused). ``count = 1`` is the
+    single bin [0, r_max).
+    """
+
+    model_config = _CONFIG
+
+    count: Annotated[int, Interval(1, 4096, what="radial bin count")] = 48
+    max_mm: Annotated[float, Interval(0, None, lo_open=True, what="max_mm")] | None = Field(
+        None, description="Outer radius in mm (excludes max_mfp)."
+    )
+    max_mfp: Annotated[float, Interval(0, None, lo_open=True, what="max_mfp")] | None = Field(
+        None, description="Outer radius in transport mean free paths 1/sigma_t' (per channel); "
+        "default 16 when max_mm is not given."
+    )
+    spacing: Literal["linear", "log"] = "log"
+    min_fraction: Annotated[
+        float, Interval(0, 1, lo_open=True, hi_open=True, what="min_fraction")
+    ] = Field(1e-3, description="Log spacing: first inner edge as a fraction of the maximum.")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_extent(cls, data: Any) -> Any:
+        """Fill ``max_mfp = 16`` when neither extent is given."""
+        if isinstance(data, dict) and data.get("max_mm") is None and data.get("max_mfp") is None:
+            data = {**data, "max_mfp": DEFAULT_MAX_MFP}
+        return data
+
+    @model_validator(mode="after")
+    def _one_extent(self) -> RadialBins:
+        if self.max_mm is not None and self.max_mfp is not None:
+            raise PydanticCustomError(
+                "radial_extent",
+                "give exactly one of max_mm or max_mfp; received max_mm={mm}, max_mfp={mfp}",
+                {"mm": self.max_mm, "mfp": self.max_mfp},
+            )
+        return self
+
+    def max_radius_mm(self, transport_mfp_mm: float) -> float:
+        """Outer radius [mm] for a channel whose transport mean free path is given [mm]."""
+        return self.max_mm if self.max_mm is not None else self.max_mfp * transport_mfp_mm
+
+
+class ThetaSBins(BaseModel):
+    """Bins of the exit azimuth theta_s over [0, 2 pi), from +x. ``count`` 1..360 or ``None``
+    ("auto": 1 if every incidence angle is 0, where the BSSRDF is symmetric, else 12)."""
+
+    model_config = _CONFIG
+
+    count: Annotated[int, Interval(1, 360, what="theta_s bin count")] | None = None
+
+
+class CosThetaOBins(BaseModel):
+    """Bins uniform in cos(theta_o) over [0, 1]; ``count`` 1..256, default 8."""
+
+    model_config = _CONFIG
+
+    count: Annotated[int, Interval(1, 256, what="cos_theta_o bin count")] = 8
+
+
+class PhiOBins(BaseModel):
+    """Bins uniform in phi_o over [0, 2 pi), from the outward radial direction; ``count``
+    1..360, default 8."""
+
+    model_config = _CONFIG
+
+    count: Annotated[int, Interval(1, 360, what="phi_o bin count")] = 8
+
+
+class BinSpec(BaseModel):
+    """The whole bin layout; every part has defaults (see the module docstring)."""
+
+    model_config = _CONFIG
+
+    radial: RadialBins = Field(default_factory=RadialBins)
+    theta_s: ThetaSBins = Field(default_factory=ThetaSBins)
+    cos_theta_o: CosThetaOBins = Field(default_factory=CosThetaOBins)
+    phi_o: PhiOBins = Field(default_factory=PhiOBins)
+
+
+def uniform_edges(lo: float, hi: float, count: int) -> np.ndarray:
+    """``count + 1`` equally spaced float64 edges from ``lo`` to ``hi`` (both exact)."""
+    edges = np.linspace(lo, hi, count + 1, dtype=np.float64)
+    edges[0], edges[-1] = lo, hi
+    return edges
+
+
+def radial_edges(radial: RadialBins, r_max_mm: float) -> np.ndarray:
+    """``radial.count + 1`` strictly increasing radial edges [mm] from 0 to ``r_max_mm``."""
+    n = radial.count
+    if n == 1:
+        return np.array([0.0, r_max_mm], dtype=np.float64)
+    if radial.spacing == "linear":
+        return uniform_edges(0.0, r_max_mm, n)
+    r_min = radial.min_fraction * r_max_mm
+    # geomspace gives n points r_min..r_max, i.e. n - 1 geometric bins, plus the bin [0, r_min).
+    outer = np.geomspace(r_min, r_max_mm, n, dtype=np.float64)
+    outer[0], outer[-1] = r_min, r_max_mm
+    return np.concatenate([[0.0], outer])
+

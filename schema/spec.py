@@ -1,0 +1,249 @@
+"""The simulation spec: medium, incidence angles, bins, photon budget, sharding and options.
+
+A spec fully determines a dataset: same spec (including ``seed``, ``shards`` and
+``batches_per_shard``) gives bitwise-identical tables whatever machines run it. Shards and
+batches therefore belong to the spec, not to the deployment: shard i simulates photons
+[floor(i N / S), floor((i + 1) N / S)) of N per incidence angle and channel, and each shard
+splits its range the same way into ``batches_per_shard`` batches, the independent samples the
+standard errors are estimated from.
+
+Incidence angles theta_i are in degrees in the x-z plane, 0 = normal; the incoming ray travels
+along (sin theta_i, 0, -cos theta_i) (ARCHITECTURE.md, "Geometry and units").
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
+from pydantic_core import PydanticCustomError
+
+from .bins import MAX_TOTAL_BINS, THETA_S_AUTO_OBLIQUE, TWO_PI, BinSpec, radial_edges, uniform_edges
+from .constraints import Interval
+from .errors import ShardIndexError, SpecError
+from .medium import ChannelOptics, MediumSpec
+
+__all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE"]
+
+MAX_PHOTONS = 2**40
+"""Most photons per incidence angle per channel (photon indices must fit the random streams)."""
+
+MAX_INCIDENCE = 32
+"""Most incidence angles in one spec."""
+
+_NAME_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._-")
+_INCIDENCE = Interval(0, 90, hi_open=True, what="incidence angle [deg]")
+
+
+def _check_name(v: str) -> str:
+    if not 1 <= len(v) <= 100 or not set(v) <= _NAME_CHARS:
+        raise PydanticCustomError(
+            "bad_name",
+            "name must be 1..100 characters from [A-Za-z0-9._-]; received {value}",
+            {"value": repr(v)[:80]},
+        )
+    return v
+
+
+class SimulationSpec(BaseModel):
+    """Everything a run needs; the fully-defaulted model is what :meth:`spec_hash` hashes."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: Annotated[str, AfterValidator(_check_name)] = Field(
+        description="Dataset name: 1..100 characters from [A-Za-z0-9._-].",
+        json_schema_extra={"pattern": "^[A-Za-z0-9._-]{1,100}$"},
+    )
+    description: str | None = Field(None, max_length=2000, description="Free text for humans.")
+    medium: MediumSpec
+    incidence_deg: list[Annotated[float, _INCIDENCE]] = Field(
+        default_factory=lambda: [0.0],
+        description="Incidence angles theta_i in degrees, each in [0, 90); 1..32 distinct values, "
+        "stored sorted ascending.",
+        validate_default=True,
+    )
+    bins: BinSpec = Field(default_factory=BinSpec, validate_default=True)
+    photons: Annotated[int, Interval(1, MAX_PHOTONS, what="photons")] = Field(
+        100_000, description="Photons per incidence angle per channel, 1..2**40."
+    )
+    seed: Annotated[int, Interval(0, 2**63 - 1, what="seed")] = 0
+    shards: Annotated[int, Interval(1, 100_000, what="shards")] = Field(
+        8, description="Independent work units, 1..100000 and <= photons.", validate_default=True
+    )
+    batches_per_shard: Annotated[int, Interval(1, 1024, what="batches_per_shard")] = Field(
+        4, description="Batches per shard for standard errors, 1..1024; shards * batches_per_shard "
+        "must be in [2, photons].", validate_default=True,
+    )
+    estimator: Literal["connections", "exits", "both"] = Field(
+        "connections", description="Tally by next-event connections, by exits, or both."
+    )
+    absorption: Literal["weights", "analog"] = Field(
+        "weights", description="Weights with Russian roulette (default) or analog absorption."
+    )
+    max_scatter: Annotated[int, Interval(1, 10_000_000, what="max_scatter")] = Field(
+        100_000, description="Path cap in scattering events; the truncated weight is reported."
+    )
+
+    @field_validator("incidence_deg")
+    @classmethod
+    def _incidence_list(cls, v: list[float]) -> list[float]:
+        if not 1 <= len(v) <= MAX_INCIDENCE:
+            raise PydanticCustomError(
+                "incidence_count",
+                "give between 1 and {n} incidence angles (allowed range [1, {n}]); "
+                "received {got}", {"n": MAX_INCIDENCE, "got": len(v)})
+        if len(set(v)) != len(v):
+            raise PydanticCustomError(
+                "incidence_duplicate", "incidence angles must be distinct; received {value}",
+                {"value": repr(v)[:80]})
+        return sorted(float(x) for x in v)
+
+    @field_validator("bins")
+    @classmethod
+    def _total_bins(cls, bins: BinSpec, info: ValidationInfo) -> BinSpec:
+        medium, incidence = info.data.get("medium"), info.data.get("incidence_deg")
+        if medium is None or incidence is None:
+            return bins  # already reported as their own errors
+        n_theta = _theta_s_count(bins, incidence)
+        factors = [bins.radial.count, n_theta, bins.cos_theta_o.count, bins.phi_o.count,
+                   medium.n_channels, len(incidence)]
+        total = math.prod(factors)
+        if total > MAX_TOTAL_BINS:
+            raise PydanticCustomError(
+                "too_many_bins",
+                "total bin count n_r * n_theta_s * n_cos * n_phi * n_channels * n_incidence = "
+                "{product} = {total} exceeds the limit 2**24 = {limit}; use fewer bins",
+                {"product": " * ".join(map(str, factors)), "total": total,
+                 "limit": MAX_TOTAL_BINS})
+        return bins
+
+    @field_validator("shards")
+    @classmethod
+    def _shards_vs_photons(cls, v: int, info: ValidationInfo) -> int:
+        photons = info.data.get("photons")
+        if photons is not None and v > photons:
+            raise PydanticCustomError(
+                "shards_vs_photons",
+                "shards must be in the allowed range [1, photons = {photons}]; received {value}",
+                {"photons": photons, "value": v})
+        return v
+
+    @field_validator("batches_per_shard")
+    @classmethod
+    def _total_batches(cls, v: int, info: ValidationInfo) -> int:
+        photons, shards = info.data.get("photons"), info.data.get("shards")
+        if photons is None or shards is None:
+            return v
+        total = shards * v
+        if not 2 <= total <= photons:
+            raise PydanticCustomError(
+                "total_batches",
+                "shards * batches_per_shard must be in the allowed range [2, photons = "
+                "{photons}] (at least 2 batches are needed for standard errors); received "
+                "{shards} * {value} = {total}",
+                {"photons": photons, "shards": shards, "value": v, "total": total})
+        return v
+
+    # ---- derived quantities ---------------------------------------------------------------
+
+    def channels(self) -> list[ChannelOptics]:
+        """Resolved optics, one per spectral channel (see :meth:`MediumSpec.channels`)."""
+        return self.medium.channels()
+
+    def theta_s_count(self) -> int:
+        """theta_s bin count, "auto" resolved: 1 if every incidence angle is 0, else 12."""
+        return _theta_s_count(self.bins, self.incidence_deg)
+
+    def radial_edges_mm(self) -> np.ndarray:
+        """Radial edges [mm], float64 array [n_channels, n_r + 1]; column 0 is 0."""
+        r = self.bins.radial
+        return np.stack([radial_edges(r, r.max_radius_mm(c.transport_mfp_mm))
+                         for c in self.channels()])
+
+    def theta_s_edges(self) -> np.ndarray:
+        """Exit-azimuth edges [rad], from 0 to 2 pi, :meth:`theta_s_count` bins."""
+        return uniform_edges(0.0, TWO_PI, self.theta_s_count())
+
+    def cos_theta_o_edges(self) -> np.ndarray:
+        """Edges in cos(theta_o), from 0 (grazing) to 1 (normal)."""
+        return uniform_edges(0.0, 1.0, self.bins.cos_theta_o.count)
+
+    def phi_o_edges(self) -> np.ndarray:
+        """Outgoing-azimuth edges [rad], from 0 to 2 pi."""
+        return uniform_edges(0.0, TWO_PI, self.bins.phi_o.count)
+
+    # ---- sharding -------------------------------------------------------------------------
+
+    def shard_photon_range(self, shard_index: int) -> tuple[int, int]:
+        """Photons [floor(i N / S), floor((i + 1) N / S)) of shard i; ShardIndexError if i is
+        not in [0, shards)."""
+        if not (isinstance(shard_index, int) and 0 <= shard_index < self.shards):
+            raise ShardIndexError(
+                f"shard_index must be in the allowed range [0, {self.shards}); "
+                f"received {shard_index!r}")
+        return _split(0, self.photons, self.shards, shard_index)
+
+    def batch_photon_ranges(self, shard_index: int) -> list[tuple[int, int]]:
+        """The shard's range split the same way into ``batches_per_shard`` non-empty pieces."""
+        start, stop = self.shard_photon_range(shard_index)
+        b = self.batches_per_shard
+        return [_split(start, stop, b, j) for j in range(b)]
+
+    # ---- identity -------------------------------------------------------------------------
+
+    def canonical_json(self) -> str:
+        """The fully-defaulted, normalised model as JSON with sorted keys and no whitespace."""
+        return json.dumps(self.model_dump(mode="json"), sort_keys=True,
+                          separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+
+    def spec_hash(self) -> str:
+        """sha256 hex digest of :meth:`canonical_json` (UTF-8)."""
+        return hashlib.sha256(self.canonical_json().encode("utf-8")).hexdigest()
+
+
+def _theta_s_count(bins: BinSpec, incidence_deg: list[float]) -> int:
+    if bins.theta_s.count is not None:
+        return bins.theta_s.count
+    return 1 if all(t == 0.0 for t in incidence_deg) else THETA_S_AUTO_OBLIQUE
+
+
+def _split(start: int, stop: int, pieces: int, i: int) -> tuple[int, int]:
+    """Piece i of [start, stop) cut at start + floor(k n / pieces), exact integer arithmetic."""
+    n = stop - start
+    return start + i * n // pieces, start + (i + 1) * n // pieces
+
+
+def parse_spec(data: Any, source: str = "") -> SimulationSpec:
+    """Validate a dict (or JSON text/bytes) into a :class:`SimulationSpec`; :class:`SpecError`
+    with one line per problem otherwise."""
+    try:
+        if isinstance(data, (str, bytes, bytearray)):
+            return SimulationSpec.model_validate_json(data)
+        return SimulationSpec.model_validate(data)
+    except ValidationError as err:
+        raise SpecError.from_validation_error(err, source) from None
+
+
+def load_spec(path: str | os.PathLike[str]) -> SimulationSpec:
+    """Read and validate a spec JSON file; :class:`SpecError` on bad JSON or bad values."""
+    source = os.fspath(path)
+    try:
+        with open(source, encoding="utf-8") as f:
+            data = json.load(f)
+    except json.JSONDecodeError as err:
+        raise SpecError(f"invalid simulation spec ({source}): not valid JSON: {err}",
+                        [("(spec)", str(err))]) from None
+    return parse_spec(data, source)
