@@ -1,0 +1,113 @@
+"""Bin geometry and bin lookup: annular sectors on the surface, equal-solid-angle directions.
+
+Conventions in :mod:`workers.conventions`.  A spatial bin is r in [r_lo, r_hi) x theta_s in
+[lo, hi) with area A = (r_hi^2 - r_lo^2)/2 * dtheta_s; a directional bin is uniform in cos(theta_o)
+over [0, 1] and in phi_o over [0, 2 pi), so every one has solid angle Omega = dcos * dphi =
+2 pi / (n_cos * n_phi).  The radial axis has one extra *overflow* index n_r for r >= r_max: it
+collects the flux beyond the last edge so that Rd is the total diffuse reflectance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+__all__ = ["BinLayout", "wrap_angle", "uniform_index", "outgoing_azimuth"]
+
+TWO_PI = 2.0 * math.pi
+
+# Angles within this many radians below 2 pi are taken as 0: at normal incidence a photon
+# scattered once leaves exactly radially (phi_o = 0), and float rounding of atan2 may put it a few
+# ulp below zero, which would otherwise wrap it into the last bin instead of the first.
+_WRAP_SNAP = 1e-5
+
+
+def wrap_angle(a: torch.Tensor) -> torch.Tensor:
+    """Wrap radians into [0, 2 pi), snapping values within 1e-5 below 2 pi to 0 (see _WRAP_SNAP)."""
+    a = torch.remainder(a, TWO_PI)
+    return torch.where(a >= TWO_PI - _WRAP_SNAP, torch.zeros_like(a), a)
+
+
+def uniform_index(value: torch.Tensor, lo: float, hi: float, count: int) -> torch.Tensor:
+    """Index of value in `count` equal bins [lo + k h, lo + (k+1) h) over [lo, hi], int64.
+
+    The closed upper end (value == hi, e.g. cos = 1 exactly) belongs to the last bin.
+    """
+    idx = torch.floor((value - lo) * (count / (hi - lo))).to(torch.int64)
+    return torch.clamp(idx, 0, count - 1)
+
+
+def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:
+    """phi_o in [0, 2 pi): azimuth of the horizontal direction (tx, ty) from the radial (px, py).
+
+    Computed as atan2(p x t, p . t) so it is exact for parallel vectors; at r = 0 the radial
+    direction is +x by convention.
+    """
+    at_origin = (px == 0) & (py == 0)
+    px = torch.where(at_origin, torch.ones_like(px), px)
+    cross = px * ty - py * tx
+    dot = px * tx + py * ty
+    return wrap_angle(torch.atan2(cross, dot))
+
+
+@dataclass(frozen=True)
+class BinLayout:
+    """Edges of every bin axis; radial edges per channel in mm.
+
+    radial_mm: float64 [n_channels, n_r + 1]; theta_s, cos_o, phi_o: float64 1-D edge arrays.
+    """
+
+    radial_mm: np.ndarray
+    theta_s: np.ndarray
+    cos_o: np.ndarray
+    phi_o: np.ndarray
+
+    @property
+    def n_r(self) -> int:
+        return self.radial_mm.shape[1] - 1
+
+    @property
+    def n_theta(self) -> int:
+        return len(self.theta_s) - 1
+
+    @property
+    def n_cos(self) -> int:
+        return len(self.cos_o) - 1
+
+    @property
+    def n_phi(self) -> int:
+        return len(self.phi_o) - 1
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """(n_r + 1 with overflow, n_theta, n_cos, n_phi): the per-component histogram shape."""
+        return (self.n_r + 1, self.n_theta, self.n_cos, self.n_phi)
+
+    def area_mm2(self, channel: int) -> np.ndarray:
+        """Area of each spatial bin [n_r, n_theta] in mm^2: (r_hi^2 - r_lo^2)/2 * dtheta_s."""
+        r = self.radial_mm[channel]
+        return np.outer(0.5 * (r[1:] ** 2 - r[:-1] ** 2), np.diff(self.theta_s))
+
+    def solid_angle(self) -> np.ndarray:
+        """Solid angle of each directional bin [n_cos, n_phi] in sr: dcos * dphi."""
+        return np.outer(np.diff(self.cos_o), np.diff(self.phi_o))
+
+    def radial_index(self, r_mm: torch.Tensor, channel: torch.Tensor) -> torch.Tensor:
+        """Radial bin of r (mm) for each event's channel; n_r for r >= r_max (overflow)."""
+        edges = torch.as_tensor(self.radial_mm, dtype=r_mm.dtype)
+        # searchsorted(right) - 1 puts r in [edge_k, edge_k+1) into k; r >= r_max gives n_r.
+        idx = torch.searchsorted(edges[channel], r_mm.unsqueeze(-1), right=True).squeeze(-1) - 1
+        return torch.clamp(idx, 0, self.n_r)
+
+    def theta_index(self, theta_s: torch.Tensor) -> torch.Tensor:
+        """theta_s bin of an angle already wrapped into [0, 2 pi)."""
+        return uniform_index(theta_s, 0.0, TWO_PI, self.n_theta)
+
+    def cos_index(self, cos_o: torch.Tensor) -> torch.Tensor:
+        return uniform_index(cos_o, 0.0, 1.0, self.n_cos)
+
+    def phi_index(self, phi_o: torch.Tensor) -> torch.Tensor:
+        return uniform_index(phi_o, 0.0, TWO_PI, self.n_phi)
