@@ -1,0 +1,47 @@
+"""Job store and lease queue (SQLite or PostgreSQL through SQLAlchemy 2).
+
+    from service.store import JobStore
+    store = JobStore("sqlite:///.bssrdf/jobs.sqlite")     # migrates on open
+    job = store.submit(spec, idempotency_key="abc")
+    lease = store.claim("worker-1", lease_seconds=60)
+"""
+
+from service.store.errors import (
+    ChecksumMismatch,
+    DatasetError,
+    IdempotencyConflict,
+    JobNotActive,
+    JobNotFound,
+    LeaseLost,
+    StoreError,
+    VersionNotFound,
+)
+from service.store.records import DatasetRecord, DatasetVersionRecord, JobProgress, JobRecord, Lease
+from service.store.retry import RetryDecision, RetryPolicy, decide_retry
+from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
+from service.store.store import JobStore
+
+__all__ = [
+    "JobStore",
+    "JobRecord",
+    "JobProgress",
+    "Lease",
+    "DatasetRecord",
+    "DatasetVersionRecord",
+    "JobState",
+    "TaskState",
+    "TaskKind",
+    "ACTIVE_JOB_STATES",
+    "TERMINAL_JOB_STATES",
+    "RetryPolicy",
+    "RetryDecision",
+    "decide_retry",
+    "StoreError",
+    "JobNotFound",
+    "JobNotActive",
+    "IdempotencyConflict",
+    "LeaseLost",
+    "DatasetError",
+    "VersionNotFound",
+    "ChecksumMismatch",
+]

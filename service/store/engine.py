@@ -1,0 +1,79 @@
+"""Engines for SQLite and PostgreSQL with one transactional behaviour.
+
+SQLite (one host, several processes):
+- WAL journal, ``busy_timeout`` and ``synchronous=FULL`` (a committed shard is never lost);
+- every transaction starts with ``BEGIN IMMEDIATE`` (SQLAlchemy's documented pysqlite recipe:
+  the driver's own BEGIN is disabled in a ``connect`` hook, ours is emitted in a ``begin`` hook),
+  so a transaction that reads then writes never fails to upgrade its lock with SQLITE_BUSY;
+- NullPool: a connection per checkout, nothing shared across ``fork()``.
+
+PostgreSQL: a normal pool with pre-ping; claims use ``FOR UPDATE SKIP LOCKED``.
+"""
+
+from __future__ import annotations
+
+import sqlalchemy as sa
+from sqlalchemy import event
+from sqlalchemy.engine import Engine, make_url
+from sqlalchemy.pool import NullPool
+
+__all__ = ["make_engine", "db_now", "is_sqlite", "SQLITE_BUSY_TIMEOUT_MS"]
+
+SQLITE_BUSY_TIMEOUT_MS = 30_000
+
+
+def is_sqlite(engine_or_dialect) -> bool:
+    """True if the engine (or dialect) is SQLite."""
+    dialect = getattr(engine_or_dialect, "dialect", engine_or_dialect)
+    return dialect.name == "sqlite"
+
+
+def db_now(dialect) -> sa.ColumnElement[float]:
+    """SQL expression of the database clock in seconds since the Unix epoch (float).
+
+    PostgreSQL: ``extract(epoch from clock_timestamp())`` (real time, not transaction start);
+    SQLite: ``(julianday('now') - 2440587.5) * 86400`` (millisecond resolution).
+    """
+    if dialect.name == "sqlite":
+        return sa.cast((sa.func.julianday("now") - 2440587.5) * 86400.0, sa.Float)
+    return sa.cast(sa.extract("epoch", sa.func.clock_timestamp()), sa.Float)
+
+
+def _sqlite_hooks(engine: Engine) -> None:
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection, _record):
+        # Disable pysqlite's implicit BEGIN; we emit our own in the "begin" hook.
+        dbapi_connection.isolation_level = None
+        cursor = dbapi_connection.cursor()
+        cursor.execute(f"PRAGMA busy_timeout = {SQLITE_BUSY_TIMEOUT_MS}")
+        cursor.execute("PRAGMA journal_mode = WAL")
+        cursor.execute("PRAGMA synchronous = FULL")
+        cursor.execute("PRAGMA foreign_keys = ON")
+        cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn):
+        conn.exec_driver_sql("BEGIN IMMEDIATE")
+
+
+def make_engine(url: str) -> Engine:
+    """An engine for ``url`` (``sqlite:///path`` or ``postgresql+psycopg://...``).
+
+    Create one per process: engines are not shared across ``fork()``.
+    """
+    parsed = make_url(url)
+    if parsed.get_backend_name() == "sqlite":
+        if parsed.database in (None, "", ":memory:"):
+            raise ValueError(
+                f"the job store needs an SQLite file shared by worker processes; received {url!r}"
+            )
+        engine = sa.create_engine(
+            parsed, poolclass=NullPool, connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
+        )
+        _sqlite_hooks(engine)
+        return engine
+    if parsed.get_backend_name() == "postgresql":
+        return sa.create_engine(parsed, pool_pre_ping=True, pool_size=2, max_overflow=4)
+    raise ValueError(
+        f"database URL must be sqlite:///FILE or postgresql+psycopg://...; received {url!r}"
+    )

@@ -1,0 +1,300 @@
+"""The lease queue: claim, heartbeat, complete, fail, release, reap.
+
+Every write that follows a claim is fenced: it applies only ``WHERE id = :task AND lease_token =
+:token AND state = 'leased'``. A worker whose lease expired and was re-claimed (new token), or
+whose job was cancelled, gets :class:`LeaseLost` and nothing it sends is stored or counted.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Protocol
+
+import sqlalchemy as sa
+from sqlalchemy.engine import Connection
+from sqlalchemy.exc import IntegrityError
+
+from service.store.base import StoreBase
+from service.store.errors import LeaseLost
+from service.store.records import Lease
+from service.store.retry import decide_retry
+from service.store.states import ACTIVE_JOB_STATES, JobState, TaskKind, TaskState
+from service.store.tables import dataset_versions, jobs, shard_results, tasks
+
+__all__ = ["QueueMixin", "Publisher"]
+
+
+class Publisher(Protocol):
+    """Moves a staged dataset version into place (see ``service.datasets.StagedVersion``)."""
+
+    def uri_for(self, version: int) -> str:
+        """Where version ``version`` will live."""
+
+    def publish(self, version: int) -> None:
+        """Atomically make the staged files version ``version`` (called inside the DB transaction)."""
+
+
+class QueueMixin(StoreBase):
+    """Task-level operations of workers."""
+
+    def claim(self, worker_id: str, lease_seconds: float) -> Lease | None:
+        """Lease the next claimable task, or return None.
+
+        Claimable: job active, and task queued (and past its retry backoff) or leased with an
+        expired lease and attempts left. Fair order: oldest job first, then shard index, merge
+        last. One atomic ``UPDATE ... WHERE id = (SELECT ... FOR UPDATE SKIP LOCKED LIMIT 1)
+        RETURNING`` (the lock clause renders to nothing on SQLite, where BEGIN IMMEDIATE holds the
+        single write lock instead). Every claim counts as an attempt and bumps the fencing token.
+        """
+        if time.monotonic() >= getattr(self, "_next_reap", 0.0):
+            self.reap_expired()
+        now = self._now()
+        expired = sa.and_(
+            tasks.c.state == TaskState.LEASED,
+            tasks.c.lease_expires_at < now,
+            tasks.c.attempts < tasks.c.max_attempts,
+        )
+        candidate = (
+            sa.select(tasks.c.id)
+            .join(jobs, jobs.c.id == tasks.c.job_id)
+            .where(
+                jobs.c.state.in_(list(ACTIVE_JOB_STATES)),
+                sa.or_(tasks.c.state == TaskState.QUEUED, expired),
+                sa.or_(tasks.c.not_before.is_(None), tasks.c.not_before <= now),
+            )
+            .order_by(tasks.c.id)
+            .limit(1)
+            .with_for_update(skip_locked=True, of=tasks)
+            .scalar_subquery()
+        )
+        stmt = (
+            sa.update(tasks)
+            .where(tasks.c.id == candidate)
+            .values(
+                expirations=tasks.c.expirations
+                + sa.case((tasks.c.state == TaskState.LEASED, 1), else_=0),
+                state=TaskState.LEASED,
+                attempts=tasks.c.attempts + 1,
+                lease_token=tasks.c.lease_token + 1,
+                lease_owner=worker_id,
+                lease_expires_at=now + sa.literal(float(lease_seconds), sa.Float),
+                heartbeat_at=now,
+                started_at=now,
+                not_before=None,
+                photons=0,
+            )
+            .returning(
+                tasks.c.id, tasks.c.lease_token, tasks.c.job_id, tasks.c.kind, tasks.c.shard_index,
+                tasks.c.attempts, tasks.c.max_attempts, tasks.c.lease_expires_at,
+            )
+        )
+        with self._tx() as conn:
+            row = conn.execute(stmt).first()
+            if row is not None:
+                conn.execute(
+                    sa.update(jobs)
+                    .where(jobs.c.id == row.job_id, jobs.c.state == JobState.QUEUED)
+                    .values(state=JobState.RUNNING, started_at=now, updated_at=now)
+                )
+                spec_json = conn.execute(
+                    sa.select(jobs.c.spec_json).where(jobs.c.id == row.job_id)
+                ).scalar_one()
+        if row is None:
+            self.reap_expired()  # nothing claimable: a good moment to fail exhausted leases
+            return None
+        return Lease(
+            task_id=row.id, token=row.lease_token, job_id=row.job_id, kind=TaskKind(row.kind),
+            shard_index=row.shard_index, attempts=row.attempts, max_attempts=row.max_attempts,
+            lease_expires_at=row.lease_expires_at, spec_json=spec_json, owner=worker_id,
+        )
+
+    def _fenced(self, lease: Lease):
+        return sa.and_(
+            tasks.c.id == lease.task_id,
+            tasks.c.lease_token == lease.token,
+            tasks.c.state == TaskState.LEASED,
+        )
+
+    def heartbeat(self, lease: Lease, lease_seconds: float, *, photons: int | None = None) -> bool:
+        """Extend the lease by ``lease_seconds`` from now; False if the lease was lost.
+
+        ``photons`` (photons simulated so far in this attempt) feeds the progress query.
+        """
+        now = self._now()
+        values = dict(lease_expires_at=now + sa.literal(float(lease_seconds), sa.Float), heartbeat_at=now)
+        if photons is not None:
+            values["photons"] = int(photons)
+        with self._tx() as conn:
+            return conn.execute(sa.update(tasks).where(self._fenced(lease)).values(**values)).rowcount == 1
+
+    def _finish(self, conn: Connection, lease: Lease, **values) -> None:
+        """Mark the leased task done, fenced; raise LeaseLost (rolling back) if not ours."""
+        now = self._now()
+        done = conn.execute(
+            sa.update(tasks)
+            .where(self._fenced(lease))
+            .values(state=TaskState.DONE, finished_at=now, lease_expires_at=None, error=None, **values)
+        )
+        if done.rowcount != 1:
+            raise LeaseLost(lease.task_id, lease.token, "lease expired and re-claimed, or job cancelled")
+
+    def complete_shard(self, lease: Lease, payload: bytes, *, photons: int, elapsed_s: float) -> None:
+        """Store a shard's result and mark the task done in one transaction (fenced).
+
+        When it is the job's last shard, the merge task becomes claimable and the job ``merging``.
+        Raises :class:`LeaseLost` if the token is stale; then nothing was written.
+        """
+        if lease.kind != TaskKind.SHARD:
+            raise ValueError(f"complete_shard needs a shard lease; received a {lease.kind} lease")
+        now = self._now()
+        with self._tx() as conn:
+            self._lock_job(conn, lease.job_id)
+            self._finish(conn, lease, photons=int(photons), elapsed_s=float(elapsed_s))
+            conn.execute(
+                sa.insert(shard_results).values(
+                    job_id=lease.job_id, shard_index=lease.shard_index, payload=payload, created_at=now
+                )
+            )
+            left = conn.execute(
+                sa.select(sa.func.count()).where(
+                    tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.SHARD,
+                    tasks.c.state != TaskState.DONE,
+                )
+            ).scalar_one()
+            if left == 0:
+                conn.execute(
+                    sa.update(tasks)
+                    .where(tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.MERGE,
+                           tasks.c.state == TaskState.WAITING)
+                    .values(state=TaskState.QUEUED)
+                )
+                conn.execute(
+                    sa.update(jobs).where(jobs.c.id == lease.job_id)
+                    .values(state=JobState.MERGING, updated_at=now)
+                )
+
+    def load_shard_results(self, job_id: str) -> list[tuple[int, bytes]]:
+        """Every stored ``(shard_index, payload)`` of a job, in shard order."""
+        with self.engine.connect() as conn:
+            rows = conn.execute(
+                sa.select(shard_results.c.shard_index, shard_results.c.payload)
+                .where(shard_results.c.job_id == job_id)
+                .order_by(shard_results.c.shard_index)
+            ).all()
+        return [(int(i), bytes(p)) for i, p in rows]
+
+    def complete_merge(self, lease: Lease, name: str, meta: dict, publisher: Publisher) -> int:
+        """Publish a dataset version and end the job ``succeeded``, in one transaction.
+
+        Inside it: fence the merge lease; allocate ``version = max + 1`` for ``name`` by inserting
+        the row under the unique (name, version) constraint (a concurrent publisher of the same
+        name blocks on it, then gets a conflict and we retry with the next number); move the
+        staged files into place (``publisher.publish``); mark the job succeeded. If the process
+        dies between the move and the commit, the directory is an orphan no catalog row points to
+        (the next publisher of that version replaces it). Returns the version number.
+        """
+        if lease.kind != TaskKind.MERGE:
+            raise ValueError(f"complete_merge needs a merge lease; received a {lease.kind} lease")
+        for _ in range(10):
+            try:
+                with self._tx() as conn:
+                    self._lock_job(conn, lease.job_id)
+                    self._finish(conn, lease)
+                    version = 1 + conn.execute(
+                        sa.select(sa.func.coalesce(sa.func.max(dataset_versions.c.version), 0))
+                        .where(dataset_versions.c.name == name)
+                    ).scalar_one()
+                    now = self._now()
+                    conn.execute(
+                        sa.insert(dataset_versions).values(
+                            name=name, version=version, uri=publisher.uri_for(version), created_at=now,
+                            job_id=lease.job_id, meta=meta,
+                        )
+                    )
+                    publisher.publish(version)
+                    conn.execute(
+                        sa.update(jobs).where(jobs.c.id == lease.job_id).values(
+                            state=JobState.SUCCEEDED, finished_at=now, updated_at=now,
+                            dataset_name=name, dataset_version=version,
+                        )
+                    )
+                return version
+            except IntegrityError:
+                continue  # another job published this version number first
+        raise RuntimeError(f"could not allocate a version of dataset {name!r} after 10 attempts")
+
+    def fail_task(self, lease: Lease, error: str) -> bool:
+        """Record a failed attempt. Returns True if the task will be retried.
+
+        The retry decision is :func:`service.store.retry.decide_retry`; without attempts left the
+        task fails and its job fails with ``error`` kept. Raises :class:`LeaseLost` if stale.
+        """
+        with self._tx() as conn:
+            self._lock_job(conn, lease.job_id)
+            row = conn.execute(
+                sa.select(tasks.c.attempts, tasks.c.max_attempts).where(self._fenced(lease))
+            ).first()
+            if row is None:
+                raise LeaseLost(lease.task_id, lease.token, "cannot record the failure")
+            decision = decide_retry(row.attempts, row.max_attempts, self.retry_policy)
+            now = self._now()
+            if decision.retry:
+                conn.execute(
+                    sa.update(tasks).where(tasks.c.id == lease.task_id).values(
+                        state=TaskState.QUEUED, error=error, lease_expires_at=None,
+                        not_before=now + sa.literal(float(decision.delay_s), sa.Float),
+                    )
+                )
+                return True
+            conn.execute(
+                sa.update(tasks).where(tasks.c.id == lease.task_id).values(
+                    state=TaskState.FAILED, error=error, lease_expires_at=None, finished_at=now
+                )
+            )
+            what = "merge" if lease.kind == TaskKind.MERGE else f"shard {lease.shard_index}"
+            self._end_job(conn, lease.job_id, JobState.FAILED,
+                          error=f"{what} failed after {row.attempts} attempts: {error}")
+            return False
+
+    def release(self, lease: Lease) -> bool:
+        """Give a lease back unfinished (worker stopping): queued again, not counted as an attempt."""
+        with self._tx() as conn:
+            return conn.execute(
+                sa.update(tasks).where(self._fenced(lease)).values(
+                    state=TaskState.QUEUED, attempts=tasks.c.attempts - 1, lease_expires_at=None,
+                    lease_owner=None, photons=0,
+                )
+            ).rowcount == 1
+
+    reap_interval_s = 5.0
+
+    def reap_expired(self) -> int:
+        """Fail tasks whose lease expired with no attempts left, and their jobs. Returns how many.
+
+        ``claim`` calls it at most every ``reap_interval_s`` seconds and whenever it finds nothing.
+        """
+        self._next_reap = time.monotonic() + self.reap_interval_s
+        now = self._now()
+        with self._tx() as conn:
+            rows = conn.execute(
+                sa.update(tasks)
+                .where(
+                    tasks.c.state == TaskState.LEASED,
+                    tasks.c.lease_expires_at < now,
+                    tasks.c.attempts >= tasks.c.max_attempts,
+                )
+                .values(
+                    state=TaskState.FAILED, expirations=tasks.c.expirations + 1, finished_at=now,
+                    error=sa.func.coalesce(tasks.c.error, "lease expired (worker died or stalled)"),
+                )
+                .returning(tasks.c.job_id, tasks.c.kind, tasks.c.shard_index, tasks.c.attempts)
+            ).all()
+            for r in rows:
+                what = "merge" if r.kind == TaskKind.MERGE else f"shard {r.shard_index}"
+                if self._lock_job(conn, r.job_id) in ACTIVE_JOB_STATES:
+                    self._end_job(
+                        conn, r.job_id, JobState.FAILED,
+                        error=f"{what} failed after {r.attempts} attempts: lease expired every time "
+                        "(worker died, was killed, or stalled without heartbeats)",
+                    )
+        return len(rows)

@@ -1,0 +1,114 @@
+"""Plain records returned by the job store (storage rows, not API models).
+
+Times are seconds since the Unix epoch (float) from the database clock.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from service.store.states import JobState, TaskKind
+
+__all__ = ["JobRecord", "Lease", "JobProgress", "DatasetVersionRecord", "DatasetRecord"]
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    """One row of ``jobs``."""
+
+    id: str
+    name: str
+    state: JobState
+    spec_json: str
+    spec_hash: str
+    shards: int
+    idempotency_key: str | None
+    created_at: float
+    updated_at: float
+    started_at: float | None
+    finished_at: float | None
+    error: str | None
+    dataset_name: str | None
+    dataset_version: int | None
+
+    @property
+    def spec_dict(self) -> dict[str, Any]:
+        """The submitted spec as a JSON object."""
+        return json.loads(self.spec_json)
+
+    @classmethod
+    def from_row(cls, row) -> "JobRecord":
+        m = row._mapping
+        return cls(**{k: m[k] for k in cls.__dataclass_fields__ if k != "state"}, state=JobState(m["state"]))
+
+
+@dataclass(frozen=True)
+class Lease:
+    """A claimed task: present ``(task_id, token)`` on every heartbeat and commit."""
+
+    task_id: int
+    token: int  # fencing token: increases on every claim of this task
+    job_id: str
+    kind: TaskKind
+    shard_index: int | None
+    attempts: int  # claims so far, this one included
+    max_attempts: int
+    lease_expires_at: float
+    spec_json: str
+    owner: str
+
+
+@dataclass(frozen=True)
+class JobProgress:
+    """What a progress display needs: shard counts, photons, rate and ETA."""
+
+    job_id: str
+    state: JobState
+    shards_total: int
+    shards_queued: int  # queued, or leased with an expired lease (will be re-claimed)
+    shards_running: int  # leased, lease live
+    shards_done: int
+    shards_failed: int  # failed or cancelled
+    merge_state: str  # TaskState of the merge task
+    photons_done: int  # done shards plus photons reported by heartbeats of running shards
+    elapsed_s: float  # since the first claim (0 before)
+    rate_photons_per_s: float | None
+    eta_s: float | None  # None until a shard finished; 0 when the job ended
+    error: str | None
+    dataset_name: str | None = None
+    dataset_version: int | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-able form."""
+        d = dict(self.__dict__)
+        d["state"] = str(self.state)
+        return d
+
+
+@dataclass(frozen=True)
+class DatasetVersionRecord:
+    """One published dataset version (row of ``dataset_versions``)."""
+
+    name: str
+    version: int
+    uri: str  # directory of the version on the storage filesystem
+    created_at: float
+    job_id: str | None
+    meta: dict[str, Any] = field(repr=False)  # metadata.json content (+ "metadata_sha256")
+
+    @classmethod
+    def from_row(cls, row) -> "DatasetVersionRecord":
+        m = row._mapping
+        return cls(m["name"], m["version"], m["uri"], m["created_at"], m["job_id"], m["meta"])
+
+
+@dataclass(frozen=True)
+class DatasetRecord:
+    """A dataset name with its versions."""
+
+    name: str
+    latest_version: int
+    versions: int
+    updated_at: float

@@ -1,0 +1,81 @@
+"""SQLAlchemy Core tables of the job store (the schema created by migration 0001).
+
+Times are seconds since the Unix epoch (float64) read from the *database* clock
+(:func:`service.store.engine.db_now`), so leases are judged by one clock for every worker host.
+"""
+
+from __future__ import annotations
+
+import sqlalchemy as sa
+
+__all__ = ["metadata", "jobs", "tasks", "shard_results", "dataset_versions"]
+
+metadata = sa.MetaData()
+
+jobs = sa.Table(
+    "jobs",
+    metadata,
+    sa.Column("id", sa.String(36), primary_key=True),  # uuid4 text
+    sa.Column("name", sa.String(200), nullable=False),  # dataset name (spec.name)
+    sa.Column("spec_json", sa.Text, nullable=False),  # spec.canonical_json()
+    sa.Column("spec_hash", sa.String(64), nullable=False),
+    sa.Column("shards", sa.Integer, nullable=False),
+    sa.Column("state", sa.String(16), nullable=False),  # JobState
+    sa.Column("idempotency_key", sa.String(200), unique=True, nullable=True),
+    sa.Column("created_at", sa.Float, nullable=False),
+    sa.Column("updated_at", sa.Float, nullable=False),
+    sa.Column("started_at", sa.Float),
+    sa.Column("finished_at", sa.Float),
+    sa.Column("error", sa.Text),
+    sa.Column("dataset_name", sa.String(200)),
+    sa.Column("dataset_version", sa.Integer),
+)
+
+tasks = sa.Table(
+    "tasks",
+    metadata,
+    # Autoincrement id: tasks are inserted job by job in shard order, merge last, so ORDER BY id is
+    # the fair claim order (oldest job first, then shard index).
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("job_id", sa.String(36), sa.ForeignKey("jobs.id", ondelete="CASCADE"), nullable=False),
+    sa.Column("kind", sa.String(8), nullable=False),  # TaskKind
+    sa.Column("shard_index", sa.Integer),  # None for the merge task
+    sa.Column("state", sa.String(16), nullable=False),  # TaskState
+    sa.Column("attempts", sa.Integer, nullable=False, server_default="0"),  # claims so far
+    sa.Column("max_attempts", sa.Integer, nullable=False),
+    sa.Column("expirations", sa.Integer, nullable=False, server_default="0"),  # leases that expired
+    sa.Column("lease_owner", sa.String(200)),
+    sa.Column("lease_token", sa.Integer, nullable=False, server_default="0"),  # fencing: +1 per claim
+    sa.Column("lease_expires_at", sa.Float),
+    sa.Column("heartbeat_at", sa.Float),
+    sa.Column("not_before", sa.Float),  # retry backoff: not claimable before this time
+    sa.Column("started_at", sa.Float),  # time of the current (last) claim
+    sa.Column("finished_at", sa.Float),
+    sa.Column("photons", sa.BigInteger, nullable=False, server_default="0"),  # done so far / in total
+    sa.Column("elapsed_s", sa.Float),
+    sa.Column("error", sa.Text),
+    sa.Index("ix_tasks_state_id", "state", "id"),
+    sa.Index("ix_tasks_job_id", "job_id"),
+)
+
+shard_results = sa.Table(
+    "shard_results",
+    metadata,
+    sa.Column("job_id", sa.String(36), sa.ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True),
+    sa.Column("shard_index", sa.Integer, primary_key=True),  # unique (job_id, shard_index)
+    sa.Column("payload", sa.LargeBinary, nullable=False),  # ShardTally.to_bytes()
+    sa.Column("created_at", sa.Float, nullable=False),
+)
+
+dataset_versions = sa.Table(
+    "dataset_versions",
+    metadata,
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("name", sa.String(200), nullable=False),
+    sa.Column("version", sa.Integer, nullable=False),
+    sa.Column("uri", sa.Text, nullable=False),  # directory of the version on the storage filesystem
+    sa.Column("created_at", sa.Float, nullable=False),
+    sa.Column("job_id", sa.String(36), sa.ForeignKey("jobs.id"), nullable=True),
+    sa.Column("meta", sa.JSON, nullable=False),  # metadata.json content + its own sha256
+    sa.UniqueConstraint("name", "version", name="uq_dataset_versions_name_version"),
+)
