@@ -1,0 +1,1 @@
+"""Tests of the job store, lease queue, worker loop, dataset storage and local runner."""

@@ -1,0 +1,169 @@
+"""The lease queue, on SQLite and PostgreSQL alike."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from service.store import JobState, LeaseLost, TaskKind, TaskState, decide_retry, RetryPolicy
+from tests.service.conftest import FakeSpec
+
+SHORT = 0.2  # seconds: a lease that expires within the test
+
+
+def finish_shards(store, job_id, n):
+    for _ in range(n):
+        lease = store.claim("w", 30)
+        assert lease.kind == TaskKind.SHARD and lease.job_id == job_id
+        store.complete_shard(lease, b"p%d" % lease.shard_index, photons=100, elapsed_s=0.1)
+
+
+def test_claim_order_oldest_job_first_then_shard_index(store):
+    a = store.submit(FakeSpec("a", shards=2))
+    b = store.submit(FakeSpec("b", shards=2))
+    got = [(l.job_id, l.kind, l.shard_index) for l in iter(lambda: store.claim("w", 30), None)]
+    # Merge tasks wait for their shards, so only the four shards are claimable.
+    assert got == [(a.id, "shard", 0), (a.id, "shard", 1), (b.id, "shard", 0), (b.id, "shard", 1)]
+    assert store.get_job(a.id).state == JobState.RUNNING
+
+
+def test_merge_task_is_gated_on_all_shards(store):
+    job = store.submit(FakeSpec(shards=3))
+    leases = [store.claim("w", 30) for _ in range(3)]
+    assert store.claim("w", 30) is None
+    for lease in leases[:2]:
+        store.complete_shard(lease, b"x", photons=10, elapsed_s=0.1)
+    assert store.claim("w", 30) is None and store.progress(job.id).merge_state == TaskState.WAITING
+    store.complete_shard(leases[2], b"x", photons=10, elapsed_s=0.1)
+    assert store.get_job(job.id).state == JobState.MERGING
+    merge = store.claim("w", 30)
+    assert merge.kind == TaskKind.MERGE and merge.shard_index is None
+    assert [i for i, _ in store.load_shard_results(job.id)] == [0, 1, 2]
+
+
+def test_expired_lease_is_reclaimed_with_new_token_and_counts_as_attempt(store):
+    store.submit(FakeSpec(shards=1))
+    first = store.claim("dead", SHORT)
+    assert store.claim("w2", 30) is None  # lease still live
+    time.sleep(SHORT + 0.1)
+    second = store.claim("w2", 30)
+    assert second.task_id == first.task_id and second.token > first.token
+    assert second.attempts == 2
+    assert store.metrics()["leases_expired"] == 1
+
+
+def test_stale_commit_is_refused_and_nothing_counted_twice(store):
+    job = store.submit(FakeSpec(shards=1))
+    stale = store.claim("slow", SHORT)
+    time.sleep(SHORT + 0.1)
+    fresh = store.claim("fast", 30)
+    store.complete_shard(fresh, b"fresh", photons=100, elapsed_s=1.0)
+    with pytest.raises(LeaseLost):
+        store.complete_shard(stale, b"stale", photons=100, elapsed_s=1.0)
+    assert store.load_shard_results(job.id) == [(0, b"fresh")]
+    m = store.metrics()
+    assert m["shards_completed"] == 1 and m["photons_simulated"] == 100
+    assert store.progress(job.id).photons_done == 100
+
+
+def test_stale_commit_refused_even_before_the_done_commit(store):
+    job = store.submit(FakeSpec(shards=1))
+    stale = store.claim("slow", SHORT)
+    time.sleep(SHORT + 0.1)
+    fresh = store.claim("fast", 30)
+    with pytest.raises(LeaseLost):
+        store.complete_shard(stale, b"stale", photons=1, elapsed_s=1.0)
+    store.complete_shard(fresh, b"fresh", photons=1, elapsed_s=1.0)
+    assert store.load_shard_results(job.id) == [(0, b"fresh")]
+
+
+def test_heartbeat_extends_live_lease_and_reports_lost_lease(store):
+    job = store.submit(FakeSpec(shards=1))
+    lease = store.claim("w1", 0.5)
+    for _ in range(3):
+        time.sleep(0.25)
+        assert store.heartbeat(lease, 0.5, photons=7)
+    assert store.claim("w2", 30) is None  # heartbeats kept it
+    assert store.progress(job.id).photons_done == 7
+    time.sleep(0.6)
+    taken = store.claim("w2", 30)
+    assert taken is not None
+    assert store.heartbeat(lease, 30) is False
+
+
+def test_release_requeues_without_counting_an_attempt(store):
+    store.submit(FakeSpec(shards=1))
+    lease = store.claim("w1", 30)
+    assert store.release(lease)
+    again = store.claim("w2", 30)
+    assert again.task_id == lease.task_id and again.attempts == 1
+    assert store.release(lease) is False  # stale token
+
+
+def test_failures_retry_then_fail_job_with_error_kept(store):
+    job = store.submit(FakeSpec(shards=2))
+    for attempt in (1, 2, 3):
+        lease = store.claim("w", 30)
+        assert lease.shard_index == 0 and lease.attempts == attempt
+        retried = store.fail_task(lease, f"boom {attempt}")
+        assert retried is (attempt < 3)
+    failed = store.get_job(job.id)
+    assert failed.state == JobState.FAILED
+    assert "shard 0" in failed.error and "boom 3" in failed.error and "3 attempts" in failed.error
+    assert store.claim("w", 30) is None  # the other shard was cancelled with its job
+
+
+def test_expired_leases_exhaust_attempts_and_fail_job(store):
+    job = store.submit(FakeSpec(shards=1))
+    for _ in range(3):
+        assert store.claim("dying", SHORT) is not None
+        time.sleep(SHORT + 0.1)
+    assert store.claim("w", 30) is None
+    failed = store.get_job(job.id)
+    assert failed.state == JobState.FAILED and "lease expired" in failed.error
+
+
+def test_cancel_stops_claims_and_refuses_late_commits(store):
+    job = store.submit(FakeSpec(shards=3))
+    lease = store.claim("w", 30)
+    cancelled = store.cancel(job.id)
+    assert cancelled.state == JobState.CANCELLED
+    assert store.claim("w", 30) is None
+    assert store.heartbeat(lease, 30) is False
+    with pytest.raises(LeaseLost):
+        store.complete_shard(lease, b"late", photons=1, elapsed_s=1)
+    assert store.load_shard_results(job.id) == []
+    assert store.cancel(job.id).state == JobState.CANCELLED  # idempotent
+    p = store.progress(job.id)
+    assert p.shards_failed == 3 and p.eta_s == 0.0
+
+
+def test_idempotency_key_returns_same_job(store):
+    a = store.submit(FakeSpec("x", seed=1), idempotency_key="k1")
+    b = store.submit(FakeSpec("x", seed=1), idempotency_key="k1")
+    c = store.submit(FakeSpec("x", seed=1))
+    assert a.id == b.id != c.id
+    from service.store import IdempotencyConflict
+
+    with pytest.raises(IdempotencyConflict, match="new key"):
+        store.submit(FakeSpec("x", seed=2), idempotency_key="k1")
+    assert len(store.list_jobs()) == 2
+
+
+def test_progress_counts_and_eta(store):
+    job = store.submit(FakeSpec(shards=4))
+    finish_shards(store, job.id, 2)
+    running = store.claim("w", 30)
+    store.heartbeat(running, 30, photons=50)
+    p = store.progress(job.id)
+    assert (p.shards_done, p.shards_running, p.shards_queued, p.shards_failed) == (2, 1, 1, 0)
+    assert p.photons_done == 250 and p.rate_photons_per_s > 0 and p.eta_s is not None
+
+
+def test_retry_decision_formula():
+    policy = RetryPolicy(base_delay_s=1.0, factor=2.0, max_delay_s=3.0)
+    assert [decide_retry(n, 5, policy).delay_s for n in (1, 2, 3, 4)] == [1.0, 2.0, 3.0, 3.0]
+    assert decide_retry(5, 5, policy).retry is False
+    with pytest.raises(ValueError, match="attempts must be >= 1"):
+        decide_retry(0, 3)
