@@ -1,0 +1,33 @@
+"""Immutable, versioned datasets on a pyarrow filesystem, catalogued in the job store.
+
+    storage = DatasetStorage(".bssrdf/data")               # or file://..., s3://bucket/prefix
+    v = open_version(store, storage, "skimmilk", 2)        # verifies every sha256
+    v.read_table("radial.parquet")
+
+Modules: :mod:`.storage` (layout, staging, atomic publish, verified reads), :mod:`.metadata`
+(metadata.json, code version), :mod:`.publish` (the merge task run by workers).
+"""
+
+from service.datasets.metadata import build_metadata, code_version
+from service.datasets.publish import IncompleteShards, run_merge_task
+from service.datasets.storage import (
+    METADATA_FILE,
+    DatasetStorage,
+    OpenVersion,
+    StagedVersion,
+    open_version,
+    sha256_file,
+)
+
+__all__ = [
+    "DatasetStorage",
+    "StagedVersion",
+    "OpenVersion",
+    "open_version",
+    "sha256_file",
+    "METADATA_FILE",
+    "run_merge_task",
+    "IncompleteShards",
+    "build_metadata",
+    "code_version",
+]

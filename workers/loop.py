@@ -1,0 +1,272 @@
+"""The worker: claim a task, run it under a heartbeated lease, commit, repeat.
+
+    bssrdf worker --db URL --storage URI [--once] [--max-tasks N] [--lease-seconds S]
+
+``Worker.run`` installs the signal handlers and calls ``loop``; ``loop`` alternates ``claim`` and
+``process``. While a task runs, a heartbeat thread extends the lease every ``heartbeat_seconds``;
+if a heartbeat finds the lease lost (expired and re-claimed, or the job cancelled) the shard is
+abandoned at the next progress call and its result discarded. SIGTERM/SIGINT: a running shard is
+abandoned and its lease released (queued again, not counted as an attempt), a running merge is
+finished; then the worker exits with status 0. Logs: one JSON object per line on stderr unless
+stderr is a terminal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+import uuid
+from typing import Any
+
+from sqlalchemy.exc import DBAPIError
+
+__all__ = ["Worker", "JsonFormatter", "add_parser", "main", "configure_logging"]
+
+log = logging.getLogger("bssrdf.worker")
+
+
+class _Abandon(Exception):
+    """Raised from the progress callback to stop a shard early (lease lost, or stopping)."""
+
+
+class _Heartbeat(threading.Thread):
+    """Extends a lease every ``period`` seconds until stopped; sets ``lost`` if it was lost."""
+
+    def __init__(self, store, lease, lease_seconds: float, period: float, photons) -> None:
+        super().__init__(name=f"heartbeat-{lease.task_id}", daemon=True)
+        self.store, self.lease, self.lease_seconds, self.period = store, lease, lease_seconds, period
+        self.photons = photons  # callable -> photons done so far
+        self.lost = threading.Event()
+        self._stop_event = threading.Event()
+
+    def run(self) -> None:
+        while not self._stop_event.wait(self.period):
+            try:
+                ok = self.store.heartbeat(self.lease, self.lease_seconds, photons=self.photons())
+            except DBAPIError as exc:  # transient DB trouble: try again next period
+                log.warning("heartbeat failed", extra={"task": self.lease.task_id, "error": str(exc)})
+                continue
+            if not ok:
+                self.lost.set()
+                return
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        self.join()
+
+
+class Worker:
+    """One worker process: claims tasks from a ``JobStore`` and writes datasets to a storage."""
+
+    def __init__(
+        self, store, storage, *, worker_id: str | None = None, lease_seconds: float = 60.0,
+        heartbeat_seconds: float | None = None, once: bool = False, max_tasks: int | None = None,
+        poll_seconds: float = 1.0,
+    ) -> None:
+        self.store, self.storage = store, storage
+        self.worker_id = worker_id or f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
+        self.lease_seconds = lease_seconds
+        self.heartbeat_seconds = heartbeat_seconds or lease_seconds / 4
+        self.once, self.max_tasks, self.poll_seconds = once, max_tasks, poll_seconds
+        self.stopping = threading.Event()
+        self.processed = 0
+        self._specs: dict[str, Any] = {}
+
+    # --- run / loop / claim / process ---
+    def run(self) -> int:
+        """Install SIGTERM/SIGINT handlers and loop until done or stopped; the exit status."""
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._on_signal)
+        log.info("worker started", extra={"worker": self.worker_id, "lease_s": self.lease_seconds})
+        self.loop()
+        log.info("worker stopped", extra={"worker": self.worker_id, "tasks": self.processed})
+        return 0
+
+    def _on_signal(self, signum, _frame) -> None:
+        log.info("stop requested", extra={"worker": self.worker_id, "signal": signal.Signals(signum).name})
+        self.stopping.set()
+
+    def loop(self) -> int:
+        """Claim and process until stopped, ``max_tasks`` reached, or (``once``) the queue is empty."""
+        db_errors = 0
+        while not self.stopping.is_set():
+            if self.max_tasks is not None and self.processed >= self.max_tasks:
+                break
+            try:
+                lease = self.claim()
+                db_errors = 0
+            except DBAPIError as exc:
+                db_errors += 1
+                if db_errors >= 10:
+                    raise
+                log.warning("claim failed; retrying", extra={"error": str(exc), "failures": db_errors})
+                self.stopping.wait(min(30.0, self.poll_seconds * 2**db_errors))
+                continue
+            if lease is None:
+                if self.once:
+                    break
+                self.stopping.wait(self.poll_seconds)
+                continue
+            self.process(lease)
+            self.processed += 1
+        return self.processed
+
+    def claim(self):
+        """One lease or None."""
+        return self.store.claim(self.worker_id, self.lease_seconds)
+
+    def process(self, lease) -> None:
+        """Run one leased task; every outcome is logged, none raises (except KeyboardInterrupt)."""
+        from service.store import LeaseLost, TaskKind
+
+        fields = {"task": lease.task_id, "job": lease.job_id, "kind": str(lease.kind),
+                  "shard": lease.shard_index, "attempt": lease.attempts, "token": lease.token}
+        log.info("task claimed", extra=fields)
+        photons = [0]
+        beat = _Heartbeat(self.store, lease, self.lease_seconds, self.heartbeat_seconds, lambda: photons[0])
+        beat.start()
+        try:
+            if lease.kind == TaskKind.SHARD:
+                self._process_shard(lease, beat, photons, fields)
+            else:
+                self._process_merge(lease, beat, fields)
+        except LeaseLost as exc:
+            log.warning("result refused: lease lost", extra={**fields, "error": str(exc)})
+        except _Abandon as exc:
+            if beat.lost.is_set():
+                log.warning("shard abandoned: lease lost", extra=fields)
+            else:
+                released = self.store.release(lease)
+                log.info("shard abandoned: stopping; lease released", extra={**fields, "released": released, "reason": str(exc)})
+        except Exception as exc:  # the task failed: record it (retry or fail the job)
+            error = f"{type(exc).__name__}: {exc}"
+            try:
+                retried = self.store.fail_task(lease, error)
+                log.error("task failed", extra={**fields, "error": error, "will_retry": retried})
+            except LeaseLost:
+                log.warning("task failed after its lease was lost", extra={**fields, "error": error})
+        finally:
+            beat.stop()
+
+    def _spec(self, lease):
+        from schema import parse_spec
+
+        if lease.job_id not in self._specs:
+            self._specs[lease.job_id] = parse_spec(json.loads(lease.spec_json))
+        return self._specs[lease.job_id]
+
+    def _process_shard(self, lease, beat: _Heartbeat, photons: list[int], fields: dict) -> None:
+        from workers.shard import run_shard
+
+        def progress(n: int) -> None:
+            photons[0] += int(n)
+            if beat.lost.is_set():
+                raise _Abandon("lease lost")
+            if self.stopping.is_set():
+                raise _Abandon("stopping")
+
+        tally = run_shard(self._spec(lease), lease.shard_index, progress=progress)
+        if beat.lost.is_set():
+            raise _Abandon("lease lost")
+        payload = tally.to_bytes()
+        self.store.complete_shard(lease, payload, photons=tally.photons, elapsed_s=tally.elapsed_s)
+        log.info("shard done", extra={**fields, "photons": tally.photons, "elapsed_s": round(tally.elapsed_s, 3),
+                                      "payload_bytes": len(payload)})
+
+    def _process_merge(self, lease, beat: _Heartbeat, fields: dict) -> None:
+        from service.datasets import run_merge_task
+
+        t0 = time.perf_counter()
+        version = run_merge_task(self.store, self.storage, lease)
+        spec = self._spec(lease)
+        log.info("dataset published", extra={**fields, "dataset": spec.name, "version": version,
+                                             "elapsed_s": round(time.perf_counter() - t0, 3)})
+
+
+# --- logging ---
+_STD_ATTRS = set(vars(logging.makeLogRecord({}))) | {"message", "asctime"}
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line: ts, level, logger, msg and every ``extra`` field."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        out = {"ts": round(record.created, 3), "level": record.levelname.lower(), "logger": record.name,
+               "msg": record.getMessage(), "pid": record.process}
+        out.update({k: v for k, v in vars(record).items() if k not in _STD_ATTRS})
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out, default=str)
+
+
+class _TextFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        extra = " ".join(f"{k}={v}" for k, v in vars(record).items() if k not in _STD_ATTRS)
+        return f"{time.strftime('%H:%M:%S')} {record.levelname:<7} {record.getMessage()} {extra}".rstrip()
+
+
+def configure_logging(level: int = logging.INFO, stream=None) -> None:
+    """JSON lines on non-terminals, short text lines on a terminal."""
+    stream = stream or sys.stderr
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(_TextFormatter() if stream.isatty() else JsonFormatter())
+    root = logging.getLogger("bssrdf")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+
+
+# --- CLI ---
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``worker`` subcommand to an argparse ``subparsers`` object."""
+    p = subparsers.add_parser("worker", help="claim and run shard and merge tasks from the job store",
+                              description=__doc__.split("\n\n")[0])
+    _add_arguments(p)
+    p.set_defaults(func=main)
+    return p
+
+
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", help="job store URL (default: BSSRDF_DATABASE_URL or the local SQLite store)")
+    p.add_argument("--storage", help="dataset storage URI (default: BSSRDF_STORAGE_URI or the local data dir)")
+    p.add_argument("--once", action="store_true", help="exit as soon as no task is claimable (batch schedulers)")
+    p.add_argument("--max-tasks", type=int, default=None, metavar="N", help="exit after N tasks")
+    p.add_argument("--lease-seconds", type=float, default=None, metavar="S", help="lease length (default 60)")
+    p.add_argument("--heartbeat-seconds", type=float, default=None, metavar="S", help="default: lease / 4")
+    p.add_argument("--poll-seconds", type=float, default=1.0, metavar="S", help="idle wait between claims")
+    p.add_argument("--worker-id", default=None, help="name in leases and logs (default host:pid:random)")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run a worker with parsed arguments; returns the exit status."""
+    from service.datasets import DatasetStorage
+    from service.settings import Settings
+    from service.store import JobStore
+
+    settings = Settings()
+    configure_logging()
+    lease_seconds = args.lease_seconds or settings.lease_seconds
+    heartbeat = args.heartbeat_seconds or (settings.heartbeat_seconds if not args.lease_seconds else None)
+    store = JobStore(args.db or settings.database_url)
+    storage = DatasetStorage(args.storage or settings.storage_uri)
+    worker = Worker(
+        store, storage, worker_id=args.worker_id, lease_seconds=lease_seconds, heartbeat_seconds=heartbeat,
+        once=args.once, max_tasks=args.max_tasks, poll_seconds=args.poll_seconds,
+    )
+    try:
+        return worker.run()
+    finally:
+        store.dispose()
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="bssrdf worker", description=__doc__.split("\n\n")[0])
+    _add_arguments(parser)
+    sys.exit(main(parser.parse_args()))
