@@ -1,0 +1,194 @@
+"""``bssrdf run SPEC.json``: the one-machine job on embedded defaults.
+
+Creates (or reuses) the local data directory with its SQLite job store and dataset storage,
+submits the job, starts N local worker processes (``python -m workers.loop``), shows progress
+(shards done / total, photons, rate, ETA) while they work, stops them, and prints the same summary
+as ``bssrdf simulate`` (read back from the stored, checksum-verified version) plus the dataset name
+and version. ``--json`` prints one JSON object instead. Ctrl-C cancels the job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["add_parser", "main", "run_local", "start_workers", "stop_workers", "format_progress", "format_summary"]
+
+_REPO = Path(__file__).resolve().parents[1]
+
+
+def start_workers(n: int, db_url: str, storage_uri: str, log_dir: Path, *, lease_seconds: float | None = None,
+                  extra_env: dict[str, str] | None = None) -> list[subprocess.Popen]:
+    """Start ``n`` worker processes; their JSON logs go to ``log_dir/worker-I.log``."""
+    log_dir.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(_REPO), env.get("PYTHONPATH")) if p)
+    # One walk per core: without this, every worker's torch would use every core.
+    env.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
+    env.update(extra_env or {})
+    cmd = [sys.executable, "-m", "workers.loop", "--db", db_url, "--storage", storage_uri, "--poll-seconds", "0.2"]
+    if lease_seconds:
+        cmd += ["--lease-seconds", str(lease_seconds)]
+    procs = []
+    for i in range(n):
+        with open(log_dir / f"worker-{i}.log", "ab") as log:
+            procs.append(subprocess.Popen(cmd + ["--worker-id", f"local-{i}"], env=env, stdout=log,
+                                          stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL))
+    return procs
+
+
+def stop_workers(procs: list[subprocess.Popen], timeout: float = 15.0) -> None:
+    """SIGTERM every worker (each releases its lease), then SIGKILL whoever is still there."""
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+    deadline = time.monotonic() + timeout
+    for p in procs:
+        try:
+            p.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def _si(x: float | None) -> str:
+    if x is None:
+        return "-"
+    for unit, scale in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
+        if abs(x) >= scale:
+            return f"{x / scale:.2f}{unit}"
+    return f"{x:.0f}"
+
+
+def format_progress(p) -> str:
+    """One status line of a ``JobProgress``."""
+    eta = "-" if p.eta_s is None else f"{p.eta_s:.0f}s"
+    return (f"{p.state:<9} shards {p.shards_done}/{p.shards_total} (running {p.shards_running}) "
+            f"photons {_si(p.photons_done)}  {_si(p.rate_photons_per_s)}/s  ETA {eta}  merge {p.merge_state}")
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """Human-readable summary (``workers.output.format_summary`` when the engine provides one)."""
+    try:
+        from workers.output import format_summary as engine_format  # type: ignore[attr-defined]
+    except ImportError:
+        engine_format = None
+    if engine_format is not None:
+        return engine_format(summary)
+    lines = [f"{summary.get('name')}  spec {str(summary.get('spec_hash', ''))[:12]}"]
+    lines.append(f"{'estimator':<12}{'theta_i':>8} {'ch':<4}{'component':<10}{'Rd':>12}{'+-':>11}{'R_spec':>10}")
+    for r in summary.get("results", []):
+        lines.append(f"{r['estimator']:<12}{r['incidence_deg']:>8.1f} {r['channel']:<4}{r['component']:<10}"
+                     f"{r['Rd']:>12.6f}{r['Rd_stderr']:>11.6f}{r['R_spec']:>10.5f}")
+    return "\n".join(lines)
+
+
+def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,
+              show_progress: bool = True, lease_seconds: float | None = None, poll: float = 0.5) -> dict[str, Any]:
+    """Submit ``spec``, run it with ``workers`` local processes, return the run report."""
+    from service.datasets import DatasetStorage, open_version
+    from service.store import TERMINAL_JOB_STATES, JobState, JobStore
+
+    store = JobStore(db_url)
+    storage = DatasetStorage(storage_uri)
+    job = store.submit(spec)
+    t0 = time.monotonic()
+    procs = start_workers(workers, db_url, storage_uri, data_dir / "logs", lease_seconds=lease_seconds)
+    tty = show_progress and sys.stderr.isatty()
+    last_line = 0.0
+    try:
+        while True:
+            p = store.progress(job.id)
+            if show_progress and (tty or time.monotonic() - last_line > 10):
+                print(("\r" if tty else "") + format_progress(p) + ("\x1b[K" if tty else ""),
+                      end="" if tty else "\n", file=sys.stderr, flush=True)
+                last_line = time.monotonic()
+            if p.state in TERMINAL_JOB_STATES:
+                break
+            if all(proc.poll() is not None for proc in procs):
+                raise RuntimeError(f"every worker exited before job {job.id} ended; see {data_dir / 'logs'}")
+            time.sleep(poll)
+    except KeyboardInterrupt:
+        store.cancel(job.id)
+        raise
+    finally:
+        if tty:
+            print(file=sys.stderr)
+        stop_workers(procs)
+    wall = time.monotonic() - t0
+    job = store.get_job(job.id)
+    report: dict[str, Any] = {"job_id": job.id, "state": str(job.state), "workers": workers, "wall_s": wall,
+                              "photons": p.photons_done, "photons_per_s": p.photons_done / wall if wall else None}
+    if job.state != JobState.SUCCEEDED:
+        report["error"] = job.error
+        return report
+    version = open_version(store, storage, job.dataset_name, job.dataset_version)
+    report.update(dataset=job.dataset_name, version=job.dataset_version, uri=version.record.uri,
+                  summary=version.read_json("summary.json"))
+    store.dispose()
+    return report
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``run`` subcommand to an argparse ``subparsers`` object."""
+    p = subparsers.add_parser("run", help="run a spec locally (SQLite store, local workers)",
+                              description=__doc__.split("\n\n")[0])
+    _add_arguments(p)
+    p.set_defaults(func=main)
+    return p
+
+
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("spec", help="simulation spec (JSON)")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: cores)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--data-dir", default=None, help="data directory (default: BSSRDF_DATA_DIR or ./.bssrdf)")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Run ``bssrdf run`` with parsed arguments; returns the exit status."""
+    from schema import SpecError, load_spec
+    from service.settings import Settings, sqlite_url_for
+
+    settings = Settings()
+    if args.data_dir:
+        data_dir = Path(args.data_dir)
+        db_url, storage_uri = sqlite_url_for(data_dir), str(data_dir / "data")
+    else:
+        data_dir = Path(settings.data_dir)
+        db_url, storage_uri = settings.database_url, settings.storage_uri
+    if args.workers < 1:
+        print(f"--workers must be >= 1; received {args.workers}", file=sys.stderr)
+        return 2
+    try:
+        spec = load_spec(args.spec)
+    except (SpecError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    data_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        report = run_local(spec, db_url=db_url, storage_uri=storage_uri, data_dir=data_dir, workers=args.workers)
+    except KeyboardInterrupt:
+        print("cancelled", file=sys.stderr)
+        return 130
+    if args.json:
+        print(json.dumps(report, indent=2, sort_keys=True))
+    elif "summary" in report:
+        print(format_summary(report["summary"]))
+        print(f"dataset {report['dataset']} version {report['version']}  ({report['uri']})")
+        print(f"{report['photons']} photons in {report['wall_s']:.1f} s with {report['workers']} workers")
+    else:
+        print(f"job {report['job_id']} {report['state']}: {report.get('error')}", file=sys.stderr)
+    return 0 if "summary" in report else 1
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="bssrdf run", description=__doc__.split("\n\n")[0])
+    _add_arguments(parser)
+    sys.exit(main(parser.parse_args()))
