@@ -1,0 +1,53 @@
+"""The `bssrdf` command: one entry point, one module per subcommand.
+
+Each subcommand module exposes ``add_parser(subparsers)``, which registers its parser and sets
+``func`` to a ``main(args) -> int``.  Modules are imported lazily by name so that the light
+commands start fast and a missing optional piece names itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+__all__ = ["main", "SUBCOMMANDS"]
+
+SUBCOMMANDS = (
+    "workers.simulate",  # simulate: in-process measurement
+    "workers.bench",  # bench: walk throughput
+    "service.runner",  # run: local job service end to end
+    "workers.loop",  # worker: claim, run, commit
+    "service.serve",  # serve: the HTTP API
+    "service.client",  # submit, status, datasets
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="bssrdf",
+        description="Exact, error-barred BSSRDF tables from Monte Carlo photon random walks.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in SUBCOMMANDS:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name != name:  # a real missing dependency inside the module: report it
+                raise
+            continue  # subcommand not part of this build yet
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

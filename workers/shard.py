@@ -1,0 +1,260 @@
+"""Run one shard of a simulation: a pure function of (spec, shard index).
+
+The shard's photons [start, stop) of every configuration (incidence angle x channel) are
+launched in a fixed order, photon-major: (p, c) for p in range(start, stop) for c in configs.
+Finished lanes are harvested after every call of the step function and refilled in lane order,
+so the schedule, and with it every float64 sum, is fixed by the spec alone.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from schema import SimulationSpec
+
+from .binning import BinLayout, outgoing_azimuth, wrap_angle
+from .connections import ConnectionGeometry, connect_phase, connect_uniform
+from .optics import fresnel_dielectric, incident_refracted_direction, refracted_cos
+from .rng import stream_key
+from .tally import BatchAccumulator, ShardTally
+from .walk import ABSORBED, EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, WalkParams, compile_enabled, step_function
+
+__all__ = ["run_shard", "Configs", "build_configs", "MAX_LANES", "VERTEX_CHUNK"]
+
+MAX_LANES = 1 << 16  # ~2^16 float32 lanes fit the cache (research/performance.md)
+MIN_LANES = 1 << 10
+VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
+EXIT_STEPS_PER_CALL = 4  # steps per compiled call between harvests (exit estimator)
+
+
+@dataclass(frozen=True)
+class Configs:
+    """Per-configuration constants; configuration c = incidence index * n_channels + channel."""
+
+    incidence_deg: list[float]
+    channel_names: list[str]
+    sigma_t: np.ndarray  # [n_cfg] 1/mm
+    albedo: np.ndarray
+    g: np.ndarray
+    r_spec: np.ndarray  # specular reflectance at entry
+    table: ConfigTable
+    eta: float
+
+    @property
+    def n(self) -> int:
+        return len(self.sigma_t)
+
+    def channel_of(self, c: int) -> int:
+        return c % len(self.channel_names)
+
+    def incidence_of(self, c: int) -> float:
+        return self.incidence_deg[c // len(self.channel_names)]
+
+
+def build_configs(spec: SimulationSpec) -> Configs:
+    channels = spec.channels()
+    eta = float(spec.medium.eta)
+    rows = []
+    for i_inc, theta in enumerate(spec.incidence_deg):
+        cos_i = math.cos(math.radians(theta))
+        r_spec = float(fresnel_dielectric(torch.tensor(cos_i, dtype=torch.float64), eta))
+        ux0, _, uz0 = incident_refracted_direction(math.radians(theta), eta)
+        for i_ch, ch in enumerate(channels):
+            fingerprint = json.dumps(
+                [i_inc, theta, i_ch, ch.sigma_a, ch.sigma_s, ch.g, eta], separators=(",", ":")
+            )
+            k0, k1 = stream_key(spec.seed, fingerprint)
+            rows.append((ch.sigma_t, ch.albedo, ch.g, r_spec, ux0, uz0, k0, k1))
+    cols = list(zip(*rows))
+    f32 = lambda v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
+    table = ConfigTable(
+        albedo=f32(cols[1]), g=f32(cols[2]), w0=f32([1.0 - r for r in cols[3]]),
+        ux0=f32(cols[4]), uz0=f32(cols[5]),
+        k0=torch.tensor(cols[6], dtype=torch.int64), k1=torch.tensor(cols[7], dtype=torch.int64),
+    )  # fmt: skip
+    return Configs(
+        incidence_deg=list(spec.incidence_deg), channel_names=[c.name for c in channels],
+        sigma_t=np.array(cols[0]), albedo=np.array(cols[1]), g=np.array(cols[2]),
+        r_spec=np.array(cols[3]), table=table, eta=eta,
+    )  # fmt: skip
+
+
+def bin_layout(spec: SimulationSpec) -> BinLayout:
+    return BinLayout(spec.radial_edges_mm(), spec.theta_s_edges(), spec.cos_theta_o_edges(), spec.phi_o_edges())
+
+
+def lane_count(n_launch: int) -> int:
+    """Lanes for a shard: the power of two covering its photons, within [2^10, 2^16]."""
+    return int(min(MAX_LANES, max(MIN_LANES, 1 << max(0, math.ceil(math.log2(max(1, n_launch)))))))
+
+
+class _Runner:
+    """The mutable bookkeeping of one shard run (kept out of the pure entry point)."""
+
+    def __init__(self, spec: SimulationSpec, shard_index: int, progress: Callable[[int], None] | None):
+        self.spec = spec
+        self.cfgs = build_configs(spec)
+        self.layout = bin_layout(spec)
+        self.start, self.stop = spec.shard_photon_range(shard_index)
+        self.n_launch = (self.stop - self.start) * self.cfgs.n
+        self.next_launch = 0
+        self.progress = progress
+        self.estimators = ["exits", "connections"] if spec.estimator == "both" else [spec.estimator]
+        self.acc = BatchAccumulator(self.estimators, self.cfgs.n, self.layout.shape, spec.batch_photon_ranges(shard_index))
+        self.lanes = Lanes.empty(lane_count(self.n_launch))
+        self.compiled = compile_enabled()
+        self.params = WalkParams(inv_eta=1.0 / self.cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter)
+        self.connect = "connections" in self.estimators
+        n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
+        self.step = step_function(self.params, n_steps, self.connect, self.compiled)
+        self.sigma_t = torch.tensor(self.cfgs.sigma_t, dtype=torch.float64)
+        edges_opt = torch.tensor(self.layout.radial_mm[[self.cfgs.channel_of(c) for c in range(self.cfgs.n)]]) * self.sigma_t[:, None]
+        self.geo = ConnectionGeometry(
+            r_lo=edges_opt[:, :-1].to(torch.float32).contiguous(), r_hi=edges_opt[:, 1:].to(torch.float32).contiguous(),
+            n_theta=self.layout.n_theta, n_cos=self.layout.n_cos, n_phi=self.layout.n_phi, eta=self.cfgs.eta,
+        )  # fmt: skip
+        self.channel_of_cfg = torch.tensor([self.cfgs.channel_of(c) for c in range(self.cfgs.n)])
+        self.vertex_buf: list[list[torch.Tensor]] = []
+        self.vertex_count = 0
+        self.steps = 0
+        self.vertices = 0
+
+    # -- lanes --------------------------------------------------------------------------------
+    def refill(self, free: torch.Tensor) -> None:
+        """Launch the next photons into the free lanes (in lane order); mark the rest EMPTY."""
+        n = min(len(free), self.n_launch - self.next_launch)
+        if n > 0:
+            q = torch.arange(self.next_launch, self.next_launch + n, dtype=torch.int64)
+            photon = self.start + q // self.cfgs.n
+            cfg = q % self.cfgs.n
+            self.lanes.refill(free[:n], photon, cfg, self.cfgs.table)
+            self.next_launch += n
+        self.lanes.status[free[n:]] = EMPTY
+
+    def harvest(self) -> None:
+        """Tally the lanes that finished, then refill them."""
+        st = self.lanes.status
+        done = torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1)
+        if len(done) == 0:
+            return
+        L = self.lanes
+        status = st[done]
+        exited = status == EXITED
+        if "exits" in self.estimators and bool(exited.any()):
+            self.tally_exits(done[exited])
+        photon = L.photon[done].numpy()
+        truncated = torch.where(status == TRUNCATED, L.w[done], 0.0).to(torch.float64).numpy()
+        absorbed = L.absorbed[done].to(torch.float64).numpy()
+        self.acc.finish_photons(photon, L.cfg[done].numpy(), absorbed, truncated)
+        if self.acc.ready:
+            self.flush_vertices(force=True)  # a batch folds only after all its vertices are tallied
+            self.acc.fold_ready()
+        if self.progress is not None:
+            self.progress(len(done))
+        self.refill(done)
+
+    # -- exit estimator -------------------------------------------------------------------------
+    def tally_exits(self, idx: torch.Tensor) -> None:
+        L = self.lanes
+        cfg = L.cfg[idx]
+        x, y = L.x[idx].double(), L.y[idx].double()
+        ux, uy, uz = L.ux[idx].double(), L.uy[idx].double(), L.uz[idx].double()
+        r_mm = torch.sqrt(x * x + y * y) / self.sigma_t[cfg]
+        ir = self.layout.radial_index(r_mm, self.channel_of_cfg[cfg])
+        it = self.layout.theta_index(wrap_angle(torch.atan2(y, x)))
+        cos_o = refracted_cos(uz, self.params.inv_eta)
+        ic = self.layout.cos_index(cos_o)
+        ip = self.layout.phi_index(outgoing_azimuth(x, y, ux, uy))
+        comp = (L.nscat[idx] >= 2).to(torch.int64)
+        w = L.w[idx].double()
+        flat = self.flat_index(cfg, comp, ir * self.layout.n_theta + it, ic * self.layout.n_phi + ip)
+        self.acc.add_hist("exits", self.acc.batch_of(L.photon[idx].numpy()), flat.numpy(), w.numpy(), (w / cos_o).numpy())
+
+    def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
+        """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
+        n_dir = self.layout.n_cos * self.layout.n_phi
+        n_sp = (self.layout.n_r + 1) * self.layout.n_theta
+        return ((cfg * 2 + comp) * n_sp + spatial) * n_dir + direction
+
+    # -- connection estimator -----------------------------------------------------------------
+    def collect_vertices(self, vertex) -> None:
+        coll, ux, uy, uz, w = vertex
+        idx = torch.nonzero(coll).squeeze(1)
+        if len(idx) == 0:
+            return
+        L = self.lanes
+        cols = [L.x[idx], L.y[idx], L.z[idx], ux[idx], uy[idx], uz[idx], L.ux[idx], L.uy[idx], L.uz[idx], w[idx],
+                L.cfg[idx], L.photon[idx], L.step[idx] - 1, (L.nscat[idx] >= 2).to(torch.int64)]  # fmt: skip
+        self.vertex_buf.append(cols)
+        self.vertex_count += len(idx)
+        self.vertices += len(idx)
+        if self.vertex_count >= VERTEX_CHUNK:
+            self.flush_vertices(force=False)
+
+    def flush_vertices(self, force: bool) -> None:
+        if not self.vertex_buf:
+            return
+        cols = [torch.cat(c) for c in zip(*self.vertex_buf)]
+        self.vertex_buf, self.vertex_count = [], 0
+        n = len(cols[0])
+        for a in range(0, n, VERTEX_CHUNK):
+            b = min(n, a + VERTEX_CHUNK)
+            if b - a < VERTEX_CHUNK and not force:
+                self.vertex_buf, self.vertex_count = [[c[a:] for c in cols]], n - a
+                return
+            self.connect_chunk([c[a:b] for c in cols])
+
+    def connect_chunk(self, cols: list[torch.Tensor]) -> None:
+        px, py, pz, ux, uy, uz, vx, vy, vz, w, cfg, photon, draw, comp = cols
+        T = self.cfgs.table
+        albedo, g, k0, k1 = T.albedo[cfg], T.g[cfg], T.k0[cfg], T.k1[cfg]
+        batch = self.acc.batch_of(photon.numpy())
+        G, S, sp, dr = connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, photon, draw, k0, k1, self.geo)
+        flat = self.flat_index(cfg[:, None], comp[:, None], sp, dr)
+        nb = G.shape[1]
+        self.acc.add_hist("connections", np.repeat(batch, nb), flat.reshape(-1).numpy(),
+                          G.reshape(-1).double().numpy(), S.reshape(-1).double().numpy())  # fmt: skip
+        G, S, sp, dr = connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, self.geo)
+        flat = self.flat_index(cfg, comp, sp, dr)
+        self.acc.add_hist("connections", batch, flat.numpy(), G.double().numpy(), S.double().numpy())
+
+    # -- main loop ------------------------------------------------------------------------------
+    def run(self) -> ShardTally:
+        t0 = time.perf_counter()
+        self.refill(torch.arange(len(self.lanes.status)))
+        tensors = self.lanes.tensors()
+        n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
+        with torch.no_grad():
+            while bool((self.lanes.status == RUNNING).any()):
+                vertex = self.step(tensors)
+                self.steps += n_steps
+                if self.connect:
+                    self.collect_vertices(vertex)
+                self.harvest()
+            self.flush_vertices(force=True)
+        assert self.acc.complete, "every batch must have folded once all photons finished"
+        info = {
+            "photons": self.n_launch, "lanes": len(self.lanes.status), "lane_steps": self.steps,
+            "vertices": self.vertices, "elapsed_s": time.perf_counter() - t0,
+            "engine": "compiled" if self.compiled else "eager", "torch": torch.__version__,
+        }  # fmt: skip
+        return ShardTally(-1, self.acc.stats, self.acc.n_sum, self.acc.nn_sum, self.acc.k, info)
+
+
+def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int], None] | None = None) -> ShardTally:
+    """Simulate shard `shard_index` of `spec`; a pure function of its inputs.
+
+    progress, if given, is called with the number of photons (all configurations) finished since
+    the last call.  The statistics in the result do not depend on the machine, the thread count
+    or when the shard runs; `info` carries timings and counters that do.
+    """
+    tally = _Runner(spec, shard_index, progress).run()
+    tally.shard_index = shard_index
+    return tally

@@ -1,0 +1,116 @@
+"""`bssrdf simulate`: measure a BSSRDF table in this process and write its tables.
+
+Runs every shard of the spec in order (torch uses all cores inside each step), merges them and
+writes radial.parquet, bins.parquet, summary.parquet and summary.json into --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from schema import SpecError, load_spec
+
+from .merge import merge
+from .output import summary, write_tables
+from .shard import run_shard
+
+__all__ = ["add_parser", "main", "simulate", "format_summary"]
+
+
+def simulate(spec, *, progress=None):
+    """Run all shards of `spec` in shard order and merge them; returns the Result."""
+    tallies = [run_shard(spec, i, progress=progress) for i in range(spec.shards)]
+    return merge(spec, tallies)
+
+
+def format_summary(doc: dict) -> str:
+    """Human-readable table of a summary document (see workers.output.summary)."""
+    lines = [f"{doc['name']}  (spec {doc['spec_hash'][:12]}, {doc['run']['photons_per_config']} photons per angle and channel)"]
+    lines.append(f"{'estimator':<12}{'theta_i':>8} {'ch':<4}{'R_spec':>9}  {'single':>20}  {'multiple':>20}  {'total':>20}")
+    rows: dict[tuple, dict] = {}
+    for r in doc["results"]:
+        rows.setdefault((r["estimator"], r["incidence_deg"], r["channel"]), {})[r["component"]] = r
+    for (est, inc, ch), comps in rows.items():
+        cells = [f"{comps[c]['Rd']:.5f} +- {comps[c]['Rd_stderr']:.5f}" for c in ("single", "multiple", "total")]
+        r_spec = comps["total"]["R_spec"]
+        lines.append(f"{est:<12}{inc:>8.1f} {ch:<4}{r_spec:>9.5f}  {cells[0]:>20}  {cells[1]:>20}  {cells[2]:>20}")
+    lines.append("Rd = diffuse reflectance (specular excluded) per unit incident power, +- one standard error.")
+    return "\n".join(lines)
+
+
+class _Progress:
+    """A tqdm bar on a terminal, nothing otherwise."""
+
+    def __init__(self, total: int, enabled: bool):
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, unit="photon", unit_scale=True, dynamic_ncols=True, file=sys.stderr)
+
+    def __call__(self, n: int) -> None:
+        if self.bar is not None:
+            self.bar.update(n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="measure a BSSRDF table in this process",
+        description="Run the photon random walk for SPEC in this process (all cores), write "
+        "radial.parquet, bins.parquet, summary.parquet and summary.json into --out, and print "
+        "R_spec and the diffuse reflectance Rd (single / multiple / total, with standard errors) "
+        "per incidence angle and channel.",
+    )
+    p.add_argument("spec", help="simulation spec (JSON); see examples/ and schema/spec.schema.json")
+    p.add_argument("--out", default="out", help="output directory (created; default ./out)")
+    p.add_argument("--photons", type=int, help="override the spec's photons per incidence angle and channel")
+    p.add_argument("--seed", type=int, help="override the spec's seed")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+    p.set_defaults(func=main)
+
+
+def load_with_overrides(path: str, photons: int | None, seed: int | None):
+    """Load a spec and apply --photons / --seed, re-validating so the limits still hold."""
+    spec = load_spec(path)
+    update = {k: v for k, v in (("photons", photons), ("seed", seed)) if v is not None}
+    if update:
+        from schema import parse_spec
+
+        data = spec.model_dump(mode="json")
+        data.update(update)
+        spec = parse_spec(data, source=f"{path} with --photons/--seed")
+    return spec
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        spec = load_with_overrides(args.spec, args.photons, args.seed)
+    except (SpecError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    n_cfg = len(spec.incidence_deg) * len(spec.channels())
+    progress = _Progress(spec.photons * n_cfg, enabled=sys.stderr.isatty() and not args.no_progress)
+    t0 = time.perf_counter()
+    try:
+        result = simulate(spec, progress=progress)
+    finally:
+        progress.close()
+    elapsed = time.perf_counter() - t0
+    write_tables(result, str(Path(args.out).resolve()))
+    doc = summary(result)
+    if args.json:
+        print(json.dumps(dict(doc, out=str(args.out), elapsed_s=round(elapsed, 3)), sort_keys=True))
+    else:
+        print(format_summary(doc))
+        print(f"wrote {', '.join(sorted(p.name for p in Path(args.out).iterdir()))} to {args.out} in {elapsed:.1f} s")
+    return 0

@@ -1,0 +1,232 @@
+"""The vectorized random walk: photon lanes, one step, refill of finished lanes.
+
+A fixed array of *lanes* holds photons in flight.  :func:`walk_step` advances every running lane
+by one interaction (fly, hit the boundary or collide, Fresnel, absorb / roulette, scatter) with
+masks and no Python branching on values, so torch.compile fuses it into a few passes over memory;
+finished lanes keep their final state until the shard runner harvests them and refills the lane
+with the next photon (:meth:`Lanes.refill`).  All lengths are optical (sigma_t = 1, see
+:mod:`workers.conventions`), so one walk serves every channel and incidence angle at once.
+
+Random numbers come from Philox keyed by (seed, configuration) with counter (photon, step): a
+photon's path does not depend on its lane, the lane count or the thread count.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, fields
+from functools import lru_cache
+
+import torch
+
+from .conventions import PURPOSE_WALK
+from .optics import fresnel_dielectric, sample_exponential, sample_hg, scatter_direction
+from .rng import philox4x32, uniform_halfopen, uniform_open
+
+__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function"]
+
+# Lane status codes (int8).
+RUNNING = 0  # photon in flight
+EXITED = 1  # refracted out through the surface; x, y and u hold the crossing
+ABSORBED = 2  # killed by analog absorption or by Russian roulette
+TRUNCATED = 3  # reached the path cap (max_scatter); w is the truncated weight
+EMPTY = 4  # no photon: the shard has run out of photons to launch
+
+_MASK32 = 0xFFFFFFFF
+
+
+@dataclass(frozen=True)
+class WalkParams:
+    """Scalars of a walk that are the same for every lane (compile-time constants).
+
+    inv_eta: 1/eta, the relative index seen from inside at the surface.
+    analog: absorption by killing with probability 1 - albedo (else weights + roulette).
+    w_min, survival: Russian roulette: a weight below w_min survives with probability `survival`
+    and is divided by it (unbiased: E[w'] = w).
+    max_scatter: path cap in scattering events.
+    """
+
+    inv_eta: float
+    analog: bool
+    max_scatter: int
+    w_min: float = 1e-3
+    survival: float = 0.1
+
+
+@dataclass
+class Lanes:
+    """State of every lane, structure-of-arrays (one tensor per field, length = lane count)."""
+
+    x: torch.Tensor  # float32 optical position
+    y: torch.Tensor
+    z: torch.Tensor
+    ux: torch.Tensor  # float32 unit direction of travel
+    uy: torch.Tensor
+    uz: torch.Tensor
+    w: torch.Tensor  # float32 weight (power) carried
+    absorbed: torch.Tensor  # float32 weight deposited by absorption so far
+    nscat: torch.Tensor  # int32 scattering events so far
+    step: torch.Tensor  # int64 random draw index (steps taken)
+    photon: torch.Tensor  # int64 photon index within its configuration
+    cfg: torch.Tensor  # int64 configuration index (incidence angle x channel)
+    status: torch.Tensor  # int8 status code
+    albedo: torch.Tensor  # float32 per-lane copy of the configuration's albedo
+    g: torch.Tensor  # float32 per-lane copy of the configuration's HG g
+    k0: torch.Tensor  # int64 Philox key words of the configuration
+    k1: torch.Tensor
+
+    @classmethod
+    def empty(cls, n: int) -> "Lanes":
+        f32 = lambda: torch.zeros(n, dtype=torch.float32)  # noqa: E731
+        i64 = lambda: torch.zeros(n, dtype=torch.int64)  # noqa: E731
+        return cls(
+            x=f32(), y=f32(), z=f32(), ux=f32(), uy=f32(), uz=f32(), w=f32(), absorbed=f32(),
+            nscat=torch.zeros(n, dtype=torch.int32), step=i64(), photon=i64(), cfg=i64(),
+            status=torch.full((n,), EMPTY, dtype=torch.int8),
+            albedo=f32(), g=f32(), k0=i64(), k1=i64(),
+        )  # fmt: skip
+
+    def tensors(self) -> list[torch.Tensor]:
+        return [getattr(self, f.name) for f in fields(self)]
+
+    def refill(self, lanes: torch.Tensor, photon: torch.Tensor, cfg: torch.Tensor, table: "ConfigTable") -> None:
+        """Start new photons (photon index, configuration) in the given lanes, in place.
+
+        A new photon sits at the origin, travelling along the refracted incident direction of its
+        configuration, with weight 1 - R_spec (the entry Fresnel transmission).
+        """
+        self.x[lanes] = 0.0
+        self.y[lanes] = 0.0
+        self.z[lanes] = 0.0
+        self.ux[lanes] = table.ux0[cfg]
+        self.uy[lanes] = 0.0
+        self.uz[lanes] = table.uz0[cfg]
+        self.w[lanes] = table.w0[cfg]
+        self.absorbed[lanes] = 0.0
+        self.nscat[lanes] = 0
+        self.step[lanes] = 0
+        self.photon[lanes] = photon
+        self.cfg[lanes] = cfg
+        self.status[lanes] = RUNNING
+        self.albedo[lanes] = table.albedo[cfg]
+        self.g[lanes] = table.g[cfg]
+        self.k0[lanes] = table.k0[cfg]
+        self.k1[lanes] = table.k1[cfg]
+
+
+@dataclass(frozen=True)
+class ConfigTable:
+    """Per-configuration constants as tensors indexed by configuration (see workers.shard)."""
+
+    albedo: torch.Tensor  # float32
+    g: torch.Tensor  # float32
+    w0: torch.Tensor  # float32, 1 - R_spec
+    ux0: torch.Tensor  # float32, refracted incident direction
+    uz0: torch.Tensor
+    k0: torch.Tensor  # int64
+    k1: torch.Tensor
+
+
+def walk_step(
+    x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, status, albedo, g, k0, k1, *, p: WalkParams
+):  # fmt: skip
+    """Advance every RUNNING lane by one interaction; returns the new state and vertex data.
+
+    One Philox block per step gives u_path (free path), u_dec (Fresnel / roulette / absorption
+    decision), u_cos and u_phi (scattering direction).  With s = -ln(u_path):
+    - z + s uz >= 0: the path reaches the surface at t = -z/uz.  With probability
+      Fr(uz, 1/eta) the photon reflects specularly (uz -> -uz) and continues from the surface
+      (the free path is memoryless, so a fresh one is drawn next step); otherwise it exits.
+    - otherwise: a collision at x + s u.  Weights mode: the absorbed share w (1 - albedo) is
+      deposited and w *= albedo, then Russian roulette below w_min.  Analog mode: the photon is
+      absorbed with probability 1 - albedo.  A surviving photon scatters into a new direction
+      sampled from Henyey-Greenstein; after max_scatter scatterings it is truncated.
+    Returns the updated fields and (collided, ux_in, uy_in, uz_in, w_in): the vertices of this
+    step with the direction and weight arriving there, for the connection estimator.  The new
+    direction is computed on every collided lane (also one killed afterwards), so it doubles as
+    the phase-function sample of the connection's multiple importance sampling.
+    """
+    running = status == RUNNING
+    b0, b1, b2, b3 = philox4x32(photon & _MASK32, photon >> 32, step, torch.zeros_like(step) + PURPOSE_WALK, k0, k1)
+    s = sample_exponential(uniform_open(b0))
+    u_dec = uniform_halfopen(b1)
+    z_new = z + s * uz
+    hit = running & (z_new >= 0.0)
+    coll = running & (z_new < 0.0)
+
+    # Boundary: uz > 0 on hit lanes; elsewhere the distance is unused, the clamp avoids 0/0.
+    t = -z / torch.clamp(uz, min=1e-30)
+    reflect = hit & (u_dec < fresnel_dielectric(uz, p.inv_eta))
+    escape = hit & ~reflect
+
+    # Collision: absorption.
+    if p.analog:
+        killed = coll & (u_dec >= albedo)
+        absorbed_new = absorbed + torch.where(killed, w, 0.0)
+        w_new = w
+    else:
+        absorbed_new = absorbed + torch.where(coll, w * (1.0 - albedo), 0.0)
+        w_att = torch.where(coll, w * albedo, w)
+        low = coll & (w_att < p.w_min)
+        survive = u_dec < p.survival
+        killed = low & ~survive
+        w_new = torch.where(low, torch.where(survive, w_att * (1.0 / p.survival), 0.0), w_att)
+    nscat_new = nscat + coll.to(torch.int32)
+    truncated = coll & ~killed & (nscat_new >= p.max_scatter)
+
+    # Collision: new direction (Henyey-Greenstein), on every collided lane.
+    cos_t = sample_hg(uniform_halfopen(b2), g)
+    phi = uniform_halfopen(b3) * (2.0 * torch.pi)
+    nx, ny, nz = scatter_direction(ux, uy, uz, cos_t, phi)
+
+    x_new = torch.where(hit, x + t * ux, torch.where(coll, x + s * ux, x))
+    y_new = torch.where(hit, y + t * uy, torch.where(coll, y + s * uy, y))
+    z_new = torch.where(hit, 0.0, torch.where(coll, z_new, z))
+    ux_new = torch.where(coll, nx, ux)
+    uy_new = torch.where(coll, ny, uy)
+    uz_new = torch.where(coll, nz, torch.where(reflect, -uz, uz))
+    status_new = torch.where(
+        escape,
+        EXITED,
+        torch.where(killed, ABSORBED, torch.where(truncated, TRUNCATED, status.to(torch.int32))),
+    ).to(torch.int8)
+    step_new = step + running.to(torch.int64)
+    state = (x_new, y_new, z_new, ux_new, uy_new, uz_new, w_new, absorbed_new, nscat_new, step_new, status_new)
+    return state, (coll, ux, uy, uz, w)
+
+
+def _step_inplace(lanes_tensors: list[torch.Tensor], p: WalkParams, n_steps: int, want_vertices: bool):
+    """Run n_steps steps writing the state back in place; returns the last step's vertex data."""
+    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1) = lanes_tensors
+    vertex = None
+    cur = (x, y, z, ux, uy, uz, w, absorbed, nscat, step, status)
+    for _ in range(n_steps):
+        cx, cy, cz, cux, cuy, cuz, cw, cab, cns, cst, cstat = cur
+        cur, vertex = walk_step(cx, cy, cz, cux, cuy, cuz, cw, cab, cns, cst, photon, cstat, albedo, g, k0, k1, p=p)
+    if want_vertices:
+        # The arrival direction and weight are the old state, overwritten just below: copy them.
+        vertex = tuple(v.clone() for v in vertex)
+    for dst, src in zip((x, y, z, ux, uy, uz, w, absorbed, nscat, step, status), cur):
+        dst.copy_(src)
+    return vertex if want_vertices else None
+
+
+def compile_enabled() -> bool:
+    """Whether the walk runs through torch.compile (BSSRDF_COMPILE=0 selects the eager path).
+
+    Both paths compute the same physics; they agree within error bars, not bitwise (the fused
+    kernels round differently), so the mode is recorded with every result.
+    """
+    return os.environ.get("BSSRDF_COMPILE", "1") not in ("0", "false", "no")
+
+
+@lru_cache(maxsize=None)
+def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bool):
+    """The (possibly compiled) in-place stepping function for these constants."""
+
+    def fn(lanes_tensors: list[torch.Tensor]):
+        return _step_inplace(lanes_tensors, p, n_steps, want_vertices)
+
+    if not compiled:
+        return fn
+    return torch.compile(fn, dynamic=False, fullgraph=True)
