@@ -31,7 +31,8 @@ def tiny_spec(name: str, photons: int, shards: int):
     from schema import parse_spec
 
     data = json.loads((REPO / "examples" / "skimmilk.json").read_text())
-    data.update(name=name, photons=photons, shards=shards, batches_per_shard=1, estimator="exits")
+    data.update(name=name, photons=photons, shards=shards, batches_per_shard=1 if shards > 1 else 2,
+                estimator="exits")
     data["bins"] = {"radial": {"count": 8, "max_mfp": 16.0, "spacing": "log"},
                     "cos_theta_o": {"count": 2}, "phi_o": {"count": 2}}
     return parse_spec(data)
