@@ -38,6 +38,7 @@ __all__ = [
     "assert_chi2",
     "assert_samples_match_pdf",
     "z_score",
+    "z_threshold",
     "assert_z",
     "assert_mean",
 ]
@@ -211,6 +212,11 @@ def assert_samples_match_pdf(
 def z_score(estimate: float, expected: float, std_err: float) -> float:
     """(estimate - expected) / std_err."""
     return (estimate - expected) / std_err
+
+
+def z_threshold(n_tests: int, alpha: float = ALPHA) -> float:
+    """|z| above which a family of n_tests two-sided normal checks rejects (Sidak level)."""
+    return float(sps.norm.isf(0.5 * sidak_level(alpha, n_tests)))
 
 
 def assert_z(estimate: float, expected: float, std_err: float, n_sigma: float = 4.0, what: str = "") -> float:

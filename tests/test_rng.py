@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.stats import assert_chi2, assert_z
+from tests.stats import assert_chi2, assert_z, z_threshold
 from workers.rng import philox4x32, philox4x32_scalar, stream_key, uniform_halfopen, uniform_open
 
 M32 = 0xFFFFFFFF
@@ -32,7 +32,7 @@ KAT = [
 # Statistical tests in this module, for the Sidak correction (tests.stats).
 N_CHI2 = 4 + 4 + 3 + 1  # per-word uniformity, word pairs in a block, neighbour pairs, key pairs
 N_Z = 4 * 32 + 6 + 4 + 1  # bit balance, word correlations, neighbour correlations, key correlation
-Z_SIGMA = 5.0  # |z| > 5: ~6e-7 per check, < 1e-4 over the family
+Z_SIGMA = z_threshold(N_Z)  # ~4.96
 
 
 def _tensors(counters, keys):
@@ -70,7 +70,6 @@ def test_tensor_known_answers_eager():
 
 def test_tensor_known_answers_compiled():
     """The int64 wrap-around in _mulhilo must survive inductor code generation."""
-    torch._dynamo.reset()
     compiled = torch.compile(philox4x32, dynamic=False, fullgraph=True)
     counters, keys, expected = zip(*KAT)
     # Repeat the vectors so the compiled kernel runs a real loop, not a 3-element special case.
