@@ -1,0 +1,58 @@
+"""Settings from the environment, and migrations that are safe to run from many processes."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import sqlalchemy as sa
+
+from service.settings import Settings
+
+
+def test_settings_defaults_and_env(monkeypatch, tmp_path):
+    s = Settings()
+    assert s.database_url.startswith("sqlite:///") and s.database_url.endswith("jobs.sqlite")
+    assert s.heartbeat_seconds == s.lease_seconds / 4
+    monkeypatch.setenv("BSSRDF_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("BSSRDF_LEASE_SECONDS", "8")
+    monkeypatch.setenv("BSSRDF_API_TOKENS", '["a", "b"]')
+    s = Settings()
+    assert s.database_url == f"sqlite:///{tmp_path / 'jobs.sqlite'}"
+    assert s.storage_uri == str(tmp_path / "data")
+    assert (s.lease_seconds, s.heartbeat_seconds, s.api_tokens) == (8.0, 2.0, ["a", "b"])
+    with pytest.raises(ValueError, match="heartbeat_seconds must be below lease_seconds"):
+        Settings(lease_seconds=5, heartbeat_seconds=6)
+
+
+def test_migrations_are_idempotent_and_concurrent(db_url):
+    from service.store import JobStore
+
+    errors = []
+
+    def open_store():
+        try:
+            JobStore(db_url).dispose()
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=open_store) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not errors
+    store = JobStore(db_url)
+    store.migrate()
+    with store.engine.connect() as conn:
+        assert conn.execute(sa.text("SELECT version_num FROM alembic_version")).scalar_one() == "0001"
+        names = set(sa.inspect(conn).get_table_names())
+    assert {"jobs", "tasks", "shard_results", "dataset_versions"} <= names
+    store.ping()
+
+
+def test_in_memory_sqlite_is_refused():
+    from service.store import JobStore
+
+    with pytest.raises(ValueError, match="SQLite file"):
+        JobStore("sqlite://")
