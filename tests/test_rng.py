@@ -132,9 +132,12 @@ def test_uniform_open_is_strictly_inside_unit_interval():
 
 
 def test_uniform_open_extremes():
-    x = torch.tensor([0, 0xFF, M32], dtype=torch.int64)
+    # 23-bit grid offset by half a step: the 9 low bits are dropped, the extremes are 2**-24
+    # and 1 - 2**-24, both exact in float32.
+    x = torch.tensor([0, 0x1FF, M32], dtype=torch.int64)
     u = uniform_open(x)
-    assert u[0] == u[1] == 0.5 / 2**24
+    assert u[0] == u[1] == 0.5 / 2**23
+    assert float(u[2]) == 1.0 - 2.0**-24
     assert 0.0 < float(u[2]) < 1.0, f"uniform_open(0xFFFFFFFF) = {float(u[2])!r}"
 
 

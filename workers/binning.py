@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import torch
 
-__all__ = ["BinLayout", "wrap_angle", "uniform_index", "outgoing_azimuth"]
+__all__ = ["BinLayout", "wrap_angle", "edge_index", "uniform_index", "outgoing_azimuth"]
 
 TWO_PI = 2.0 * math.pi
 
@@ -31,13 +32,32 @@ def wrap_angle(a: torch.Tensor) -> torch.Tensor:
     return torch.where(a >= TWO_PI - _WRAP_SNAP, torch.zeros_like(a), a)
 
 
+def edge_index(value: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Index k of the bin [edges[k], edges[k+1]) holding value, int64, clamped to the end bins.
+
+    Looking the value up in the stored edges (not floor((v - lo) / h)) keeps the lookup
+    consistent with the edges written to the tables: a value exactly on edge k is in bin k.  The
+    closed upper end (value == edges[-1], e.g. cos = 1) belongs to the last bin.
+    """
+    idx = torch.bucketize(value, edges.to(value.dtype), right=True) - 1
+    return torch.clamp(idx, 0, len(edges) - 2)
+
+
+@lru_cache(maxsize=256)
+def _uniform_edges(lo: float, hi: float, count: int) -> torch.Tensor:
+    # The same construction as schema.uniform_edges, so the lookups match the tables' edges.
+    edges = np.linspace(lo, hi, count + 1, dtype=np.float64)
+    edges[0], edges[-1] = lo, hi
+    return torch.from_numpy(edges)
+
+
 def uniform_index(value: torch.Tensor, lo: float, hi: float, count: int) -> torch.Tensor:
     """Index of value in `count` equal bins [lo + k h, lo + (k+1) h) over [lo, hi], int64.
 
-    The closed upper end (value == hi, e.g. cos = 1 exactly) belongs to the last bin.
+    Out-of-range values are clamped into the end bins (callers pass values already in range;
+    the closed upper end belongs to the last bin).  See :func:`edge_index`.
     """
-    idx = torch.floor((value - lo) * (count / (hi - lo))).to(torch.int64)
-    return torch.clamp(idx, 0, count - 1)
+    return edge_index(value, _uniform_edges(float(lo), float(hi), int(count)))
 
 
 def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:
@@ -104,10 +124,10 @@ class BinLayout:
 
     def theta_index(self, theta_s: torch.Tensor) -> torch.Tensor:
         """theta_s bin of an angle already wrapped into [0, 2 pi)."""
-        return uniform_index(theta_s, 0.0, TWO_PI, self.n_theta)
+        return edge_index(theta_s, torch.from_numpy(self.theta_s))
 
     def cos_index(self, cos_o: torch.Tensor) -> torch.Tensor:
-        return uniform_index(cos_o, 0.0, 1.0, self.n_cos)
+        return edge_index(cos_o, torch.from_numpy(self.cos_o))
 
     def phi_index(self, phi_o: torch.Tensor) -> torch.Tensor:
-        return uniform_index(phi_o, 0.0, TWO_PI, self.n_phi)
+        return edge_index(phi_o, torch.from_numpy(self.phi_o))

@@ -55,17 +55,31 @@ def hg_pdf(cos_theta: torch.Tensor, g: torch.Tensor | float) -> torch.Tensor:
 def sample_hg(u: torch.Tensor, g: torch.Tensor | float) -> torch.Tensor:
     """cos(theta) distributed by Henyey-Greenstein, from u uniform in [0, 1].
 
-    Inverting the CDF gives the familiar
-        cos = (1 + g^2 - ((1 - g^2) / (1 - g + 2 g u))^2) / (2 g),
-    which cancels catastrophically as g -> 0.  With t = 2u - 1 the same expression expands to
+    Inverting the CDF gives, for a = |g| > 0,
+        cos(a, u) = (1 + a^2 - s^2) / (2 a),   s = (1 - a^2) / (1 - a + 2 a u),
+    u = 0 and 1 mapping to -1 and +1; a negative g mirrors it: cos(g, u) = -cos(|g|, 1 - u).
+    This form keeps float32 precision up to |g| -> 1 but cancels as g -> 0, so for |g| < 0.1 the
+    same expression expanded with t = 2u - 1,
         cos = (t + (g/2) (3 + t^2 + 2 g t + g^2 (t^2 - 1))) / (1 + g t)^2,
-    which has no division by g and equals t (isotropic) at g = 0; u = 0 and 1 map to -1 and +1.
+    is used instead: no division by g, exactly t (isotropic) at g = 0, and no cancellation for
+    small |g| (it does cancel near t = -1 when g -> 1, hence the two branches).
     (The seed slides print the first form with -1/|2g|: a sign typo, wrong for g > 0.)
     """
+    g = torch.as_tensor(g, dtype=u.dtype)
+    a = torch.abs(g)
+    # Mirror negative g onto positive: cos(g, u) = -cos(|g|, 1 - u).
+    v = torch.where(g < 0, 1.0 - u, u)
+    a_safe = torch.clamp(a, min=0.1)  # the large-|g| branch is only selected for |g| >= 0.1
+    one_minus_a = 1.0 - a_safe  # exact in floating point for a >= 0.5 (Sterbenz)
+    # (1 - a)(1 + a), not 1 - a*a: the rounding of a*a would dominate 1 - a^2 as a -> 1.
+    s = one_minus_a * (1.0 + a_safe) / (one_minus_a + 2.0 * a_safe * v)
+    cos_large = (1.0 + a_safe * a_safe - s * s) / (2.0 * a_safe)
+    cos_large = torch.where(g < 0, -cos_large, cos_large)
     t = 2.0 * u - 1.0
     d = 1.0 + g * t
-    cos = (t + 0.5 * g * (3.0 + t * t + 2.0 * g * t + g * g * (t * t - 1.0))) / (d * d)
-    # Rounding can leave |cos| a few ulp above 1 for |g| near 1; it must stay a cosine.
+    cos_small = (t + 0.5 * g * (3.0 + t * t + 2.0 * g * t + g * g * (t * t - 1.0))) / (d * d)
+    cos = torch.where(a >= 0.1, cos_large, cos_small)
+    # Rounding can leave |cos| a few ulp above 1; it must stay a cosine.
     return torch.clamp(cos, -1.0, 1.0)
 
 
@@ -83,13 +97,16 @@ def fresnel_dielectric(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.
     leaving it, 1/eta (Born and Wolf, Principles of Optics, sec. 1.5; pbrt-v4 FrDielectric).
     """
     cos_i = torch.clamp(cos_i, 0.0, 1.0)
-    sin2_t = (1.0 - cos_i * cos_i) / (eta * eta)
-    tir = sin2_t >= 1.0
-    cos_t = torch.sqrt(torch.clamp(1.0 - sin2_t, min=0.0))
+    cos2_t = 1.0 - (1.0 - cos_i * cos_i) / (eta * eta)
+    # eta = 1 (no interface): cos_t = cos_i exactly, so Fr = 0 even at grazing incidence, where
+    # 1 - cos_i^2 rounds to 1 and the line above would report total internal reflection.
+    cos2_t = torch.where(torch.as_tensor(eta) == 1.0, cos_i * cos_i, cos2_t)
+    tir = cos2_t <= 0.0
+    cos_t = torch.sqrt(torch.clamp(cos2_t, min=0.0))
     r_s = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
     r_p = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
     fr = 0.5 * (r_s * r_s + r_p * r_p)
-    # Grazing incidence with eta = 1 gives 0/0 above; there is no interface, nothing reflects.
+    # cos_i = 0 with eta = 1 gives 0/0 above; there is no interface, nothing reflects.
     fr = torch.where(torch.isnan(fr), torch.zeros_like(fr), fr)
     return torch.where(tir, torch.ones_like(fr), fr)
 
@@ -115,19 +132,20 @@ def scatter_direction(
         u'y = sin(t) (uy uz cos(p) + ux sin(p)) / sqrt(1 - uz^2) + uy cos(t)
         u'z = -sin(t) cos(p) sqrt(1 - uz^2) + uz cos(t)
 
-    and, where |uz| is within 1e-5 of 1 (the frame degenerates), u' = (sin t cos p, sin t sin p,
-    sign(uz) cos t).  The result is renormalised, so float32 rounding does not accumulate over
+    with sqrt(1 - uz^2) computed as sqrt(ux^2 + uy^2); where u is exactly (anti)parallel to z
+    (the frame degenerates), u' = (sin t cos p, sin t sin p, sign(uz) cos t).  The result is renormalised, so float32 rounding does not accumulate over
     thousands of scattering events.
     """
     sin_theta = torch.sqrt(torch.clamp(1.0 - cos_theta * cos_theta, min=0.0))
     cos_phi = torch.cos(phi)
     sin_phi = torch.sin(phi)
-    # The clamp keeps the division finite on lanes where the polar branch below is taken.
-    den = torch.sqrt(torch.clamp(1.0 - uz * uz, min=1e-12))
-    nx = sin_theta * (ux * uz * cos_phi - uy * sin_phi) / den + ux * cos_theta
-    ny = sin_theta * (uy * uz * cos_phi + ux * sin_phi) / den + uy * cos_theta
+    # sqrt(ux^2 + uy^2) rather than sqrt(1 - uz^2): the latter loses float32 precision as |uz| -> 1.
+    den = torch.sqrt(ux * ux + uy * uy)
+    polar = den < 1e-20  # u is (anti)parallel to z: the frame degenerates
+    den_safe = torch.where(polar, torch.ones_like(den), den)
+    nx = sin_theta * (ux * uz * cos_phi - uy * sin_phi) / den_safe + ux * cos_theta
+    ny = sin_theta * (uy * uz * cos_phi + ux * sin_phi) / den_safe + uy * cos_theta
     nz = -sin_theta * cos_phi * den + uz * cos_theta
-    polar = torch.abs(uz) > 0.99999
     nx = torch.where(polar, sin_theta * cos_phi, nx)
     ny = torch.where(polar, sin_theta * sin_phi, ny)
     nz = torch.where(polar, torch.where(uz >= 0, cos_theta, -cos_theta), nz)

@@ -95,12 +95,13 @@ def philox4x32_scalar(counter: tuple[int, int, int, int], key: tuple[int, int]) 
 
 
 def uniform_open(x: torch.Tensor) -> torch.Tensor:
-    """Map 32 random bits to float32 in the open interval (0, 1): ((x >> 8) + 0.5) / 2**24.
+    """Map 32 random bits to float32 in the open interval (0, 1): ((x >> 9) + 0.5) / 2**23.
 
-    Exactly representable in float32 (24-bit grid, offset by half a step), never 0 or 1, so
-    -log(u) and log(1 - u) are finite.
+    A 23-bit grid offset by half a step: every value, up to 1 - 2**-24, is exact in float32, so
+    the result is never 0 or 1 and -log(u), log(1 - u) are finite.  (A 24-bit grid + 0.5 would
+    need 25 significant bits at the top and round up to exactly 1.)
     """
-    return ((x >> 8).to(torch.float32) + 0.5) * (1.0 / 16777216.0)
+    return ((x >> 9).to(torch.float32) + 0.5) * (1.0 / 8388608.0)
 
 
 def uniform_halfopen(x: torch.Tensor) -> torch.Tensor:
