@@ -332,7 +332,7 @@ def test_fresnel_energy_conservation(eta):
     for c in COS_GRID[COS_GRID > 0]:
         # cos_t^2 as (c^2 + eta^2 - 1) / eta^2, which is exact at eta = 1 (1 - sin^2 is not
         # at grazing incidence, where it would make this reference T, not R, inaccurate).
-        cos2_t = (c * c + eta * eta - 1.0) / (eta * eta)
+        cos2_t = (c * c + (eta * eta - 1.0)) / (eta * eta)
         if cos2_t <= 0.0:
             continue
         ct = math.sqrt(cos2_t)
