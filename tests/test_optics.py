@@ -330,9 +330,10 @@ def test_fresnel_energy_conservation(eta):
     T = (eta cos_t / cos_i) (t_s^2 + t_p^2) / 2, t_s = 2 cos_i / (cos_i + eta cos_t),
     t_p = 2 cos_i / (eta cos_i + cos_t)."""
     for c in COS_GRID[COS_GRID > 0]:
-        # cos_t^2 as (c^2 + eta^2 - 1) / eta^2, which is exact at eta = 1 (1 - sin^2 is not
-        # at grazing incidence, where it would make this reference T, not R, inaccurate).
-        cos2_t = (c * c + (eta * eta - 1.0)) / (eta * eta)
+        # At eta = 1 cos_t = c exactly (1 - sin^2 loses it at grazing incidence, which would make
+        # this reference T, not R, inaccurate); elsewhere the usual form, which decides total
+        # internal reflection at the exact critical angle (a grid point for eta 0.6) the same way.
+        cos2_t = c * c if eta == 1.0 else 1.0 - (1.0 - c * c) / (eta * eta)
         if cos2_t <= 0.0:
             continue
         ct = math.sqrt(cos2_t)
