@@ -91,9 +91,18 @@ class QueueMixin(StoreBase):
         with self._tx() as conn:
             row = conn.execute(stmt).first()
             if row is not None:
+                # Lock order elsewhere is job row, then task rows; here the task is already locked,
+                # so skip a locked job row instead of waiting (no deadlock with cancel). Whoever
+                # holds it is another first claim (it sets running) or a cancel.
+                first_claim = (
+                    sa.select(jobs.c.id)
+                    .where(jobs.c.id == row.job_id, jobs.c.state == JobState.QUEUED)
+                    .with_for_update(skip_locked=True)
+                    .scalar_subquery()
+                )
                 conn.execute(
                     sa.update(jobs)
-                    .where(jobs.c.id == row.job_id, jobs.c.state == JobState.QUEUED)
+                    .where(jobs.c.id == first_claim)
                     .values(state=JobState.RUNNING, started_at=now, updated_at=now)
                 )
                 spec_json = conn.execute(
@@ -275,26 +284,35 @@ class QueueMixin(StoreBase):
         """
         self._next_reap = time.monotonic() + self.reap_interval_s
         now = self._now()
-        with self._tx() as conn:
-            rows = conn.execute(
-                sa.update(tasks)
-                .where(
-                    tasks.c.state == TaskState.LEASED,
-                    tasks.c.lease_expires_at < now,
-                    tasks.c.attempts >= tasks.c.max_attempts,
-                )
-                .values(
-                    state=TaskState.FAILED, expirations=tasks.c.expirations + 1, finished_at=now,
-                    error=sa.func.coalesce(tasks.c.error, "lease expired (worker died or stalled)"),
-                )
-                .returning(tasks.c.job_id, tasks.c.kind, tasks.c.shard_index, tasks.c.attempts)
-            ).all()
-            for r in rows:
-                what = "merge" if r.kind == TaskKind.MERGE else f"shard {r.shard_index}"
-                if self._lock_job(conn, r.job_id) in ACTIVE_JOB_STATES:
+        exhausted = sa.and_(
+            tasks.c.state == TaskState.LEASED,
+            tasks.c.lease_expires_at < now,
+            tasks.c.attempts >= tasks.c.max_attempts,
+        )
+        with self.engine.connect() as conn:
+            job_ids = conn.execute(sa.select(tasks.c.job_id).where(exhausted).distinct()).scalars().all()
+        rows = []
+        for job_id in job_ids:
+            with self._tx() as conn:
+                # Job row first, then its tasks: the lock order of every other write.
+                if self._lock_job(conn, job_id) not in ACTIVE_JOB_STATES:
+                    continue
+                failed = conn.execute(
+                    sa.update(tasks)
+                    .where(tasks.c.job_id == job_id, exhausted)
+                    .values(
+                        state=TaskState.FAILED, expirations=tasks.c.expirations + 1, finished_at=now,
+                        error=sa.func.coalesce(tasks.c.error, "lease expired (worker died or stalled)"),
+                    )
+                    .returning(tasks.c.kind, tasks.c.shard_index, tasks.c.attempts)
+                ).all()
+                if failed:
+                    r = failed[0]
+                    what = "merge" if r.kind == TaskKind.MERGE else f"shard {r.shard_index}"
                     self._end_job(
-                        conn, r.job_id, JobState.FAILED,
+                        conn, job_id, JobState.FAILED,
                         error=f"{what} failed after {r.attempts} attempts: lease expired every time "
                         "(worker died, was killed, or stalled without heartbeats)",
                     )
+                rows += failed
         return len(rows)
