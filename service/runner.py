@@ -74,19 +74,10 @@ def format_progress(p) -> str:
 
 
 def format_summary(summary: dict[str, Any]) -> str:
-    """Human-readable summary (``workers.output.format_summary`` when the engine provides one)."""
-    try:
-        from workers.output import format_summary as engine_format  # type: ignore[attr-defined]
-    except ImportError:
-        engine_format = None
-    if engine_format is not None:
-        return engine_format(summary)
-    lines = [f"{summary.get('name')}  spec {str(summary.get('spec_hash', ''))[:12]}"]
-    lines.append(f"{'estimator':<12}{'theta_i':>8} {'ch':<4}{'component':<10}{'Rd':>12}{'+-':>11}{'R_spec':>10}")
-    for r in summary.get("results", []):
-        lines.append(f"{r['estimator']:<12}{r['incidence_deg']:>8.1f} {r['channel']:<4}{r['component']:<10}"
-                     f"{r['Rd']:>12.6f}{r['Rd_stderr']:>11.6f}{r['R_spec']:>10.5f}")
-    return "\n".join(lines)
+    """The human-readable summary of ``bssrdf simulate`` (``workers.simulate.format_summary``)."""
+    from workers.simulate import format_summary as simulate_format
+
+    return simulate_format(summary)
 
 
 def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,
@@ -177,14 +168,17 @@ def main(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("cancelled", file=sys.stderr)
         return 130
-    if args.json:
-        print(json.dumps(report, indent=2, sort_keys=True))
+    if args.json:  # simulate's JSON (the summary document) plus where the version lives
+        doc = dict(report.pop("summary", {}), **report)
+        print(json.dumps(doc, sort_keys=True))
     elif "summary" in report:
         print(format_summary(report["summary"]))
         print(f"dataset {report['dataset']} version {report['version']}  ({report['uri']})")
         print(f"{report['photons']} photons in {report['wall_s']:.1f} s with {report['workers']} workers")
     else:
         print(f"job {report['job_id']} {report['state']}: {report.get('error')}", file=sys.stderr)
+    if args.json:
+        return 0 if report["state"] == "succeeded" else 1
     return 0 if "summary" in report else 1
 
 

@@ -75,9 +75,9 @@ def test_bssrdf_run_publishes_versions_with_the_simulate_summary(tmp_path):
     first = json.loads(subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, check=True,
                                       timeout=150).stdout)
     assert first["state"] == "succeeded" and (first["dataset"], first["version"]) == ("runme", 1)
-    assert first["summary"]["name"] == "runme" and first["summary"]["results"]
+    assert first["name"] == "runme" and first["results"] and first["run"]["shards"] == 2  # simulate's JSON
     human = subprocess.run(cmd[:-1], cwd=REPO, env=env, capture_output=True, text=True, check=True, timeout=150)
-    assert "dataset runme version 2" in human.stdout
+    assert "dataset runme version 2" in human.stdout and "Rd = diffuse reflectance" in human.stdout
     store = JobStore(f"sqlite:///{tmp_path / 'd' / 'jobs.sqlite'}")
     assert [v.version for v in store.list_versions("runme")] == [1, 2]
     # same spec and seed: the same tables in both versions
