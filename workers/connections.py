@@ -25,6 +25,7 @@ divided by A Omega when results are formed.  Vertices after the first scattering
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import torch
 
@@ -33,7 +34,7 @@ from .conventions import PURPOSE_CONNECT
 from .optics import fresnel_dielectric, hg_pdf, refracted_cos
 from .rng import philox4x32, uniform_halfopen
 
-__all__ = ["ConnectionGeometry", "connect_uniform", "connect_phase"]
+__all__ = ["ConnectionGeometry", "connect_uniform", "connect_phase", "connection_function"]
 
 _MASK32 = 0xFFFFFFFF
 
@@ -141,3 +142,17 @@ def connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo: Co
     spatial = ir * n_t + it
     return G, S, spatial, direction
 
+
+
+def _connect_both(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, photon, draw, k0, k1, geo: ConnectionGeometry):
+    uniform = connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, photon, draw, k0, k1, geo)
+    phase = connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo)
+    return uniform, phase
+
+
+@lru_cache(maxsize=None)
+def connection_function(compiled: bool):
+    """Both techniques for a chunk of vertices, compiled (static chunk size) or eager."""
+    if not compiled:
+        return _connect_both
+    return torch.compile(_connect_both, dynamic=False, fullgraph=True)

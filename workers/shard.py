@@ -20,18 +20,20 @@ import torch
 from schema import SimulationSpec
 
 from .binning import BinLayout, outgoing_azimuth, wrap_angle
-from .connections import ConnectionGeometry, connect_phase, connect_uniform
+from .connections import ConnectionGeometry, connection_function
 from .optics import fresnel_dielectric, incident_refracted_direction, refracted_cos
 from .rng import stream_key
 from .tally import BatchAccumulator, ShardTally
-from .walk import ABSORBED, EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, WalkParams, compile_enabled, step_function
+from .walk import ABSORBED, EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, WalkParams, compile_enabled, refill_function, step_function
 
-__all__ = ["run_shard", "Configs", "build_configs", "MAX_LANES", "VERTEX_CHUNK"]
+__all__ = ["run_shard", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
 
-MAX_LANES = 1 << 16  # ~2^16 float32 lanes fit the cache (research/performance.md)
-MIN_LANES = 1 << 10
+CHUNK = 1 << 15  # lanes per call of the compiled step (one static shape for every shard)
+EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
+MAX_CHUNKS = 2  # 2^16 lanes in all: about what fits the cache (research/performance.md)
+PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
-EXIT_STEPS_PER_CALL = 4  # steps per compiled call between harvests (exit estimator)
+EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
 
 
 @dataclass(frozen=True)
@@ -90,9 +92,10 @@ def bin_layout(spec: SimulationSpec) -> BinLayout:
     return BinLayout(spec.radial_edges_mm(), spec.theta_s_edges(), spec.cos_theta_o_edges(), spec.phi_o_edges())
 
 
-def lane_count(n_launch: int) -> int:
-    """Lanes for a shard: the power of two covering its photons, within [2^10, 2^16]."""
-    return int(min(MAX_LANES, max(MIN_LANES, 1 << max(0, math.ceil(math.log2(max(1, n_launch)))))))
+def chunk_count(n_launch: int, chunk: int) -> int:
+    """Chunks of `chunk` lanes for a shard: enough that each lane runs about PHOTONS_PER_LANE
+    photons (fewer lanes keep the tail, where lanes fall idle, short), at most MAX_CHUNKS."""
+    return int(min(MAX_CHUNKS, max(1, math.ceil(n_launch / (PHOTONS_PER_LANE * chunk)))))
 
 
 class _Runner:
@@ -108,12 +111,19 @@ class _Runner:
         self.progress = progress
         self.estimators = ["exits", "connections"] if spec.estimator == "both" else [spec.estimator]
         self.acc = BatchAccumulator(self.estimators, self.cfgs.n, self.layout.shape, spec.batch_photon_ranges(shard_index))
-        self.lanes = Lanes.empty(lane_count(self.n_launch))
         self.compiled = compile_enabled()
+        self.chunk = CHUNK if self.compiled else EAGER_CHUNK
+        self.lanes = Lanes.empty(chunk_count(self.n_launch, self.chunk) * self.chunk)
+        tensors = self.lanes.tensors()
+        self.chunks = [[t[a : a + self.chunk] for t in tensors] for a in range(0, len(self.lanes.status), self.chunk)]
+        self.active = len(self.chunks)  # chunks [0, active) hold every running lane
+        self.table_tensors = self.cfgs.table.tensors()
         self.params = WalkParams(inv_eta=1.0 / self.cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter)
         self.connect = "connections" in self.estimators
         n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
         self.step = step_function(self.params, n_steps, self.connect, self.compiled)
+        self.refill_fn = refill_function(self.compiled)
+        self.connect_fn = connection_function(self.compiled)
         self.sigma_t = torch.tensor(self.cfgs.sigma_t, dtype=torch.float64)
         edges_opt = torch.tensor(self.layout.radial_mm[[self.cfgs.channel_of(c) for c in range(self.cfgs.n)]]) * self.sigma_t[:, None]
         self.geo = ConnectionGeometry(
@@ -123,33 +133,47 @@ class _Runner:
         self.channel_of_cfg = torch.tensor([self.cfgs.channel_of(c) for c in range(self.cfgs.n)])
         self.vertex_buf: list[list[torch.Tensor]] = []
         self.vertex_count = 0
-        self.steps = 0
+        self.steps = 0  # calls x steps per call
+        self.photon_steps = 0  # interaction steps (free paths) of finished photons
         self.vertices = 0
 
     # -- lanes --------------------------------------------------------------------------------
-    def refill(self, free: torch.Tensor) -> None:
-        """Launch the next photons into the free lanes (in lane order); mark the rest EMPTY."""
-        n = min(len(free), self.n_launch - self.next_launch)
-        if n > 0:
-            q = torch.arange(self.next_launch, self.next_launch + n, dtype=torch.int64)
-            photon = self.start + q // self.cfgs.n
-            cfg = q % self.cfgs.n
-            self.lanes.refill(free[:n], photon, cfg, self.cfgs.table)
-            self.next_launch += n
-        self.lanes.status[free[n:]] = EMPTY
+    def refill(self) -> int:
+        """Launch the next photons into the lanes not running, in lane order; returns how many."""
+        n0 = self.next_launch
+        for chunk in self.chunks[: self.active]:
+            if self.next_launch == self.n_launch:
+                break
+            free = self.chunk - int((chunk[12] == RUNNING).sum())  # index 12: status
+            launch = torch.tensor([self.start, self.next_launch, self.n_launch, self.cfgs.n], dtype=torch.int64)
+            self.refill_fn(chunk, self.table_tensors, launch)
+            self.next_launch += min(free, self.n_launch - self.next_launch)
+        return self.next_launch - n0
 
-    def harvest(self) -> None:
-        """Tally the lanes that finished, then refill them."""
+    def compact(self, running: int) -> None:
+        """Tail of the shard (nothing left to launch): move the running lanes, in lane order, to
+        the front so that only ceil(running / CHUNK) chunks are stepped."""
+        need = max(1, math.ceil(running / self.chunk))
+        if need >= self.active:
+            return
+        n = self.active * self.chunk
+        idx = torch.nonzero(self.lanes.status[:n] == RUNNING).squeeze(1)
+        for t in self.lanes.tensors():
+            t[: len(idx)] = t[idx]
+        self.lanes.status[len(idx) : n] = EMPTY
+        self.active = need
+
+    def harvest(self, running: int) -> int:
+        """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
         st = self.lanes.status
         done = torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1)
-        if len(done) == 0:
-            return
         L = self.lanes
         status = st[done]
         exited = status == EXITED
         if "exits" in self.estimators and bool(exited.any()):
             self.tally_exits(done[exited])
         photon = L.photon[done].numpy()
+        self.photon_steps += int(L.step[done].sum())
         truncated = torch.where(status == TRUNCATED, L.w[done], 0.0).to(torch.float64).numpy()
         absorbed = L.absorbed[done].to(torch.float64).numpy()
         self.acc.finish_photons(photon, L.cfg[done].numpy(), absorbed, truncated)
@@ -158,7 +182,11 @@ class _Runner:
             self.acc.fold_ready()
         if self.progress is not None:
             self.progress(len(done))
-        self.refill(done)
+        st[done] = EMPTY  # harvested: free for a new photon, never tallied twice
+        running += self.refill()
+        if self.next_launch == self.n_launch:
+            self.compact(running)
+        return running
 
     # -- exit estimator -------------------------------------------------------------------------
     def tally_exits(self, idx: torch.Tensor) -> None:
@@ -184,13 +212,14 @@ class _Runner:
         return ((cfg * 2 + comp) * n_sp + spatial) * n_dir + direction
 
     # -- connection estimator -----------------------------------------------------------------
-    def collect_vertices(self, vertex) -> None:
+    def collect_vertices(self, vertex, offset: int) -> None:
         coll, ux, uy, uz, w = vertex
-        idx = torch.nonzero(coll).squeeze(1)
+        local = torch.nonzero(coll).squeeze(1)
+        idx = local + offset
         if len(idx) == 0:
             return
         L = self.lanes
-        cols = [L.x[idx], L.y[idx], L.z[idx], ux[idx], uy[idx], uz[idx], L.ux[idx], L.uy[idx], L.uz[idx], w[idx],
+        cols = [L.x[idx], L.y[idx], L.z[idx], ux[local], uy[local], uz[local], L.ux[idx], L.uy[idx], L.uz[idx], w[local],
                 L.cfg[idx], L.photon[idx], L.step[idx] - 1, (L.nscat[idx] >= 2).to(torch.int64)]  # fmt: skip
         self.vertex_buf.append(cols)
         self.vertex_count += len(idx)
@@ -212,36 +241,55 @@ class _Runner:
             self.connect_chunk([c[a:b] for c in cols])
 
     def connect_chunk(self, cols: list[torch.Tensor]) -> None:
+        """Tally both connection techniques for up to VERTEX_CHUNK vertices.
+
+        A short chunk is padded to VERTEX_CHUNK (the compiled kernel has one static shape) with
+        copies of its first vertex, whose results are cut off before tallying.
+        """
+        n = len(cols[0])
+        if n < VERTEX_CHUNK:
+            cols = [torch.cat((c, c[:1].expand(VERTEX_CHUNK - n, *c.shape[1:]))) for c in cols]
         px, py, pz, ux, uy, uz, vx, vy, vz, w, cfg, photon, draw, comp = cols
         T = self.cfgs.table
         albedo, g, k0, k1 = T.albedo[cfg], T.g[cfg], T.k0[cfg], T.k1[cfg]
+        (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.connect_fn(
+            px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, photon, draw, k0, k1, self.geo
+        )
+        cfg, comp, photon = cfg[:n], comp[:n], photon[:n]
         batch = self.acc.batch_of(photon.numpy())
-        G, S, sp, dr = connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, photon, draw, k0, k1, self.geo)
-        flat = self.flat_index(cfg[:, None], comp[:, None], sp, dr)
-        nb = G.shape[1]
+        flat = self.flat_index(cfg[:, None], comp[:, None], spu[:n], dru[:n])
+        nb = flat.shape[1]
         self.acc.add_hist("connections", np.repeat(batch, nb), flat.reshape(-1).numpy(),
-                          G.reshape(-1).double().numpy(), S.reshape(-1).double().numpy())  # fmt: skip
-        G, S, sp, dr = connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, self.geo)
-        flat = self.flat_index(cfg, comp, sp, dr)
-        self.acc.add_hist("connections", batch, flat.numpy(), G.double().numpy(), S.double().numpy())
+                          Gu[:n].reshape(-1).double().numpy(), Su[:n].reshape(-1).double().numpy())  # fmt: skip
+        flat = self.flat_index(cfg, comp, spp[:n], drp[:n])
+        self.acc.add_hist("connections", batch, flat.numpy(), Gp[:n].double().numpy(), Sp[:n].double().numpy())
 
     # -- main loop ------------------------------------------------------------------------------
     def run(self) -> ShardTally:
         t0 = time.perf_counter()
-        self.refill(torch.arange(len(self.lanes.status)))
-        tensors = self.lanes.tensors()
+        running = self.refill()
         n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
+        # Harvesting costs a pass over the lanes plus Python work: wait until an eighth of the
+        # lanes has finished (or none runs) so the cost is spread over many photons.
+        harvest_at = max(1, len(self.lanes.status) // 8)
         with torch.no_grad():
-            while bool((self.lanes.status == RUNNING).any()):
-                vertex = self.step(tensors)
+            while running > 0:
+                running = finished = 0
+                for k in range(self.active):
+                    counts, vertex = self.step(self.chunks[k])
+                    running, finished = running + int(counts[0]), finished + int(counts[1])
+                    if self.connect:
+                        self.collect_vertices(vertex, k * self.chunk)
                 self.steps += n_steps
-                if self.connect:
-                    self.collect_vertices(vertex)
-                self.harvest()
+                if finished >= harvest_at or (running == 0 and finished > 0) or (
+                    finished and self.next_launch == self.n_launch and running <= (self.active - 1) * self.chunk
+                ):
+                    running = self.harvest(running)
             self.flush_vertices(force=True)
+            self.acc.fold_ready()
         assert self.acc.complete, "every batch must have folded once all photons finished"
         info = {
-            "photons": self.n_launch, "lanes": len(self.lanes.status), "lane_steps": self.steps,
+            "photons": self.n_launch, "lanes": len(self.lanes.status), "lane_steps": self.steps, "photon_steps": self.photon_steps,
             "vertices": self.vertices, "elapsed_s": time.perf_counter() - t0,
             "engine": "compiled" if self.compiled else "eager", "torch": torch.__version__,
         }  # fmt: skip

@@ -14,6 +14,7 @@ photon's path does not depend on its lane, the lane count or the thread count.
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass, fields
 from functools import lru_cache
 
@@ -23,7 +24,7 @@ from .conventions import PURPOSE_WALK
 from .optics import fresnel_dielectric, sample_exponential, sample_hg, scatter_direction
 from .rng import philox4x32, uniform_halfopen, uniform_open
 
-__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function"]
+__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function", "refill_function", "compile_enabled"]
 
 # Lane status codes (int8).
 RUNNING = 0  # photon in flight
@@ -89,30 +90,6 @@ class Lanes:
     def tensors(self) -> list[torch.Tensor]:
         return [getattr(self, f.name) for f in fields(self)]
 
-    def refill(self, lanes: torch.Tensor, photon: torch.Tensor, cfg: torch.Tensor, table: "ConfigTable") -> None:
-        """Start new photons (photon index, configuration) in the given lanes, in place.
-
-        A new photon sits at the origin, travelling along the refracted incident direction of its
-        configuration, with weight 1 - R_spec (the entry Fresnel transmission).
-        """
-        self.x[lanes] = 0.0
-        self.y[lanes] = 0.0
-        self.z[lanes] = 0.0
-        self.ux[lanes] = table.ux0[cfg]
-        self.uy[lanes] = 0.0
-        self.uz[lanes] = table.uz0[cfg]
-        self.w[lanes] = table.w0[cfg]
-        self.absorbed[lanes] = 0.0
-        self.nscat[lanes] = 0
-        self.step[lanes] = 0
-        self.photon[lanes] = photon
-        self.cfg[lanes] = cfg
-        self.status[lanes] = RUNNING
-        self.albedo[lanes] = table.albedo[cfg]
-        self.g[lanes] = table.g[cfg]
-        self.k0[lanes] = table.k0[cfg]
-        self.k1[lanes] = table.k1[cfg]
-
 
 @dataclass(frozen=True)
 class ConfigTable:
@@ -125,6 +102,10 @@ class ConfigTable:
     uz0: torch.Tensor
     k0: torch.Tensor  # int64
     k1: torch.Tensor
+
+    def tensors(self) -> list[torch.Tensor]:
+        """In the order :func:`_refill_inplace` expects."""
+        return [self.albedo, self.g, self.w0, self.ux0, self.uz0, self.k0, self.k1]
 
 
 def walk_step(
@@ -196,7 +177,12 @@ def walk_step(
 
 
 def _step_inplace(lanes_tensors: list[torch.Tensor], p: WalkParams, n_steps: int, want_vertices: bool):
-    """Run n_steps steps writing the state back in place; returns the last step's vertex data."""
+    """Run n_steps steps writing the state back in place.
+
+    Returns (counts, vertex): counts = int64 [running, finished] lanes after the steps (finished =
+    EXITED, ABSORBED or TRUNCATED, waiting for harvest); vertex = the last step's vertex data
+    (see :func:`walk_step`) if want_vertices, else None.
+    """
     (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1) = lanes_tensors
     vertex = None
     cur = (x, y, z, ux, uy, uz, w, absorbed, nscat, step, status)
@@ -208,7 +194,39 @@ def _step_inplace(lanes_tensors: list[torch.Tensor], p: WalkParams, n_steps: int
         vertex = tuple(v.clone() for v in vertex)
     for dst, src in zip((x, y, z, ux, uy, uz, w, absorbed, nscat, step, status), cur):
         dst.copy_(src)
-    return vertex if want_vertices else None
+    new_status = cur[-1]
+    counts = torch.stack(((new_status == RUNNING).sum(), ((new_status != RUNNING) & (new_status != EMPTY)).sum()))
+    return counts, vertex
+
+
+def _refill_inplace(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor], launch: torch.Tensor) -> None:
+    """Start new photons in every lane that is not RUNNING, in lane order, in place.
+
+    launch = int64 [start photon, next launch number, launches in the shard, configurations]:
+    the k-th free lane (k = 0, 1, ...) gets launch number q = next + k, i.e. photon
+    start + q // n_cfg of configuration q % n_cfg, while q < launches; the remaining free lanes
+    become EMPTY.  A new photon sits at the origin travelling along the refracted incident
+    direction of its configuration with weight 1 - R_spec.
+    """
+    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1) = lanes_tensors
+    t_albedo, t_g, t_w0, t_ux0, t_uz0, t_k0, t_k1 = table
+    start, nxt, n_launch, n_cfg = launch[0], launch[1], launch[2], launch[3]
+    free = status != RUNNING
+    q = nxt + torch.cumsum(free.to(torch.int64), 0) - 1
+    new = free & (q < n_launch)
+    q = torch.where(new, q, 0)  # keeps the gathers below in range on lanes that are not refilled
+    c = q % n_cfg
+    zero = torch.zeros_like(x)
+    for dst, val in ((x, zero), (y, zero), (z, zero), (uy, zero), (absorbed, zero),
+                     (ux, t_ux0[c]), (uz, t_uz0[c]), (w, t_w0[c]), (albedo, t_albedo[c]), (g, t_g[c])):  # fmt: skip
+        dst.copy_(torch.where(new, val, dst))
+    nscat.copy_(torch.where(new, 0, nscat))
+    step.copy_(torch.where(new, 0, step))
+    photon.copy_(torch.where(new, start + q // n_cfg, photon))
+    cfg.copy_(torch.where(new, c, cfg))
+    k0.copy_(torch.where(new, t_k0[c], k0))
+    k1.copy_(torch.where(new, t_k1[c], k1))
+    status.copy_(torch.where(new, RUNNING, torch.where(free, EMPTY, status.to(torch.int32))).to(torch.int8))
 
 
 def compile_enabled() -> bool:
@@ -220,6 +238,29 @@ def compile_enabled() -> bool:
     return os.environ.get("BSSRDF_COMPILE", "1") not in ("0", "false", "no")
 
 
+_compile_lock = threading.Lock()
+
+
+def _maybe_compile(fn, compiled: bool):
+    """torch.compile fn for a static lane count (dynamic shapes made the step 3x slower here; the
+    shard runner always calls it on chunks of CHUNK lanes).  Calls run under a lock until the
+    first has compiled, so shards started together on several threads do not compile at once."""
+    if not compiled:
+        return fn
+    cfn = torch.compile(fn, dynamic=False, fullgraph=True)
+    warmed = threading.Event()
+
+    def call(*args):
+        if warmed.is_set():
+            return cfn(*args)
+        with _compile_lock:
+            out = cfn(*args)
+        warmed.set()
+        return out
+
+    return call
+
+
 @lru_cache(maxsize=None)
 def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bool):
     """The (possibly compiled) in-place stepping function for these constants."""
@@ -227,6 +268,10 @@ def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bo
     def fn(lanes_tensors: list[torch.Tensor]):
         return _step_inplace(lanes_tensors, p, n_steps, want_vertices)
 
-    if not compiled:
-        return fn
-    return torch.compile(fn, dynamic=False, fullgraph=True)
+    return _maybe_compile(fn, compiled)
+
+
+@lru_cache(maxsize=None)
+def refill_function(compiled: bool):
+    """The (possibly compiled) in-place refill, :func:`_refill_inplace`."""
+    return _maybe_compile(_refill_inplace, compiled)
