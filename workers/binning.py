@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 import torch
@@ -43,7 +42,6 @@ def edge_index(value: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     return torch.clamp(idx, 0, len(edges) - 2)
 
 
-@lru_cache(maxsize=256)
 def _uniform_edges(lo: float, hi: float, count: int) -> torch.Tensor:
     # The same construction as schema.uniform_edges, so the lookups match the tables' edges.
     edges = np.linspace(lo, hi, count + 1, dtype=np.float64)
@@ -54,10 +52,17 @@ def _uniform_edges(lo: float, hi: float, count: int) -> torch.Tensor:
 def uniform_index(value: torch.Tensor, lo: float, hi: float, count: int) -> torch.Tensor:
     """Index of value in `count` equal bins [lo + k h, lo + (k+1) h) over [lo, hi], int64.
 
-    Out-of-range values are clamped into the end bins (callers pass values already in range;
-    the closed upper end belongs to the last bin).  See :func:`edge_index`.
+    floor((v - lo) / h) may land one bin off the stored edges (schema.uniform_edges) when v is on
+    or within rounding of an edge, so the guess is corrected against those edges: the result is
+    the bin [edges[k], edges[k+1]) that holds v, as :func:`edge_index` gives, without a search
+    (torch.bucketize does not fuse into compiled kernels).  Out-of-range values are clamped into
+    the end bins; the closed upper end belongs to the last bin.
     """
-    return edge_index(value, _uniform_edges(float(lo), float(hi), int(count)))
+    edges = _uniform_edges(float(lo), float(hi), int(count)).to(value.dtype)
+    k = torch.clamp(torch.floor((value - lo) * (count / (hi - lo))).to(torch.int64), 0, count - 1)
+    k = torch.where((value < edges[k]) & (k > 0), k - 1, k)
+    k = torch.where((value >= edges[k + 1]) & (k < count - 1), k + 1, k)
+    return k
 
 
 def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:

@@ -30,6 +30,7 @@ __all__ = ["run_shard", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
 
 CHUNK = 1 << 15  # lanes per call of the compiled step (one static shape for every shard)
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
+CONNECT_CHUNK = 1 << 11  # lanes per call with connections: their kernel dominates, few photons run
 MAX_CHUNKS = 2  # 2^16 lanes in all: about what fits the cache (research/performance.md)
 PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
@@ -112,14 +113,14 @@ class _Runner:
         self.estimators = ["exits", "connections"] if spec.estimator == "both" else [spec.estimator]
         self.acc = BatchAccumulator(self.estimators, self.cfgs.n, self.layout.shape, spec.batch_photon_ranges(shard_index))
         self.compiled = compile_enabled()
-        self.chunk = CHUNK if self.compiled else EAGER_CHUNK
+        self.connect = "connections" in self.estimators
+        self.chunk = CONNECT_CHUNK if self.connect else CHUNK if self.compiled else EAGER_CHUNK
         self.lanes = Lanes.empty(chunk_count(self.n_launch, self.chunk) * self.chunk)
         tensors = self.lanes.tensors()
         self.chunks = [[t[a : a + self.chunk] for t in tensors] for a in range(0, len(self.lanes.status), self.chunk)]
         self.active = len(self.chunks)  # chunks [0, active) hold every running lane
         self.table_tensors = self.cfgs.table.tensors()
         self.params = WalkParams(inv_eta=1.0 / self.cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter)
-        self.connect = "connections" in self.estimators
         n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
         self.step = step_function(self.params, n_steps, self.connect, self.compiled)
         self.refill_fn = refill_function(self.compiled)

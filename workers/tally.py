@@ -77,11 +77,16 @@ class BatchAccumulator:
 
     def add_hist(self, estimator: str, batch: np.ndarray, flat: np.ndarray, g: np.ndarray, s: np.ndarray) -> None:
         """Add contributions g (to G) and s (to S, i.e. g / cos_o) at flat histogram indices."""
-        for b in np.unique(batch):
-            sel = batch == b
-            arrays = self._batch(int(b))
-            arrays[f"{estimator}/G"] += np.bincount(flat[sel], weights=g[sel], minlength=self.hist_size)
-            arrays[f"{estimator}/S"] += np.bincount(flat[sel], weights=s[sel], minlength=self.hist_size)
+        lo, hi = int(batch.min()), int(batch.max())
+        for b in range(lo, hi + 1):  # photons run in order: a chunk spans one or two batches
+            if lo == hi:
+                f, gw, sw = flat, g, s
+            else:
+                sel = batch == b
+                f, gw, sw = flat[sel], g[sel], s[sel]
+            arrays = self._batch(b)
+            arrays[f"{estimator}/G"] += np.bincount(f, weights=gw, minlength=self.hist_size)
+            arrays[f"{estimator}/S"] += np.bincount(f, weights=sw, minlength=self.hist_size)
 
     def finish_photons(self, photon: np.ndarray, cfg: np.ndarray, absorbed: np.ndarray, truncated: np.ndarray) -> None:
         """Record finished photons (their absorbed and truncated weights).
