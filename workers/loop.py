@@ -252,6 +252,11 @@ def main(args: argparse.Namespace) -> int:
 
     settings = Settings()
     configure_logging()
+    # One worker process per core, one torch thread each: shards are independent, so processes
+    # scale without per-step synchronisation, and the walk runs exactly as in `bssrdf simulate`.
+    import torch
+
+    torch.set_num_threads(1)
     lease_seconds = args.lease_seconds or settings.lease_seconds
     heartbeat = args.heartbeat_seconds or (settings.heartbeat_seconds if not args.lease_seconds else None)
     store = JobStore(args.db or settings.database_url)
