@@ -72,6 +72,10 @@ class JobsMixin(StoreBase):
             return self._check_same_spec(existing, spec)
         return self.get_job(job_id)
 
+    def job_by_idempotency_key(self, key: str) -> JobRecord | None:
+        """The job stored under this idempotency key, or None (lets the API answer 200 vs 201)."""
+        return self._job_by_key(key)
+
     def _job_by_key(self, key: str) -> JobRecord | None:
         with self.engine.connect() as conn:
             row = conn.execute(sa.select(jobs).where(jobs.c.idempotency_key == key)).first()
