@@ -1,0 +1,86 @@
+"""The FastAPI application factory.
+
+    from service.api import create_app
+    app = create_app()                   # settings from the environment (get_settings)
+    app = create_app(Settings(...))      # explicit settings (installed as a dependency override)
+
+Routers: ``/v1/jobs``, ``/v1/datasets``, and the unversioned ``/healthz``, ``/readyz``,
+``/metrics``. The interactive OpenAPI documentation is at ``/docs``.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from service.api.deps import Resources
+from service.api.errors import install_error_handlers
+from service.api.routers import datasets, health, jobs
+from service.settings import Settings, get_settings
+
+__all__ = ["create_app", "is_loopback", "check_auth_config", "InsecureBindError"]
+
+API_VERSION = "1"
+
+
+class InsecureBindError(RuntimeError):
+    """The API would accept unauthenticated writes on a network-reachable address."""
+
+
+def is_loopback(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and ``localhost``; False for 0.0.0.0, :: and any other name."""
+    if host.strip().lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False  # a host name: it may resolve to anything, treat it as exposed
+
+
+def check_auth_config(settings: Settings) -> None:
+    """Refuse a non-loopback bind address without API tokens (raises :class:`InsecureBindError`)."""
+    if not settings.api_tokens and not is_loopback(settings.host):
+        raise InsecureBindError(
+            f"refusing to serve on {settings.host!r} without API tokens: anyone who can reach it could submit "
+            "and cancel jobs. Set BSSRDF_API_TOKENS='[\"TOKEN\"]' (a JSON list; make a token with "
+            "python -c 'import secrets; print(secrets.token_urlsafe(32))') "
+            "or bind a loopback address (--host 127.0.0.1)."
+        )
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """A configured app; raises :class:`InsecureBindError` on an unsafe auth configuration.
+
+    ``settings`` (default: the cached :func:`get_settings`) is checked here and, when given,
+    installed as the override of ``get_settings`` so every request sees it.
+    """
+    effective = settings if settings is not None else get_settings()
+    check_auth_config(effective)
+    resources = Resources()
+
+    @asynccontextmanager
+    async def lifespan(_app: FastAPI):
+        yield
+        resources.close()
+
+    app = FastAPI(
+        title="bssrdf-db",
+        version=API_VERSION,
+        summary="BSSRDF tables from Monte Carlo photon random walks, as a batch service.",
+        description="Submit a medium as a simulation spec, follow the job while workers run its shards, "
+        "then read and download the merged, immutable, checksummed dataset version.\n\n"
+        "Mutating endpoints need `Authorization: Bearer TOKEN` (BSSRDF_API_TOKENS); read endpoints too "
+        "when BSSRDF_READ_OPEN=false. Errors are `{\"detail\": ...}`; a 422 lists every bad field with "
+        "its allowed range and the value received.",
+        lifespan=lifespan,
+    )
+    app.state.resources = resources
+    if settings is not None:
+        app.dependency_overrides[get_settings] = lambda: settings
+    install_error_handlers(app)
+    app.include_router(jobs.router)
+    app.include_router(datasets.router)
+    app.include_router(health.router)
+    return app

@@ -1,0 +1,145 @@
+"""Dependencies of the routes, as ``Annotated`` aliases.
+
+    SettingsDep   the cached :func:`service.settings.get_settings` (tests override it)
+    StoreDep      the app's JobStore (one per process, created on first use)
+    StorageDep    the app's DatasetStorage
+    AuthDep       a bearer token from ``settings.api_tokens``: mutating endpoints
+    ReadAuthDep   the same unless ``settings.read_open``: read endpoints
+    JobDep        the job named by the ``{job_id}`` path parameter, or 404
+
+With no tokens configured, authentication is off; :func:`service.api.app.create_app` allows that
+only on a loopback address.
+"""
+
+from __future__ import annotations
+
+import secrets
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Path, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from service.datasets import DatasetStorage
+from service.settings import Settings, get_settings
+from service.store import JobNotFound, JobRecord, JobStore
+
+__all__ = [
+    "SettingsDep", "StoreDep", "StorageDep", "AuthDep", "ReadAuthDep", "JobDep",
+    "get_settings", "get_store", "get_storage", "require_token", "require_read_token", "job_or_404",
+    "Resources",
+]
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+@contextmanager
+def _unavailable(what: str, setting: str) -> Iterator[None]:
+    """Turn a failure to open the store or storage into a 503 that names the setting to check."""
+    try:
+        yield
+    except Exception as exc:
+        text = str(getattr(exc, "orig", None) or exc).strip()
+        reason = f"{type(exc).__name__}: {text.splitlines()[0] if text else ''}"
+        raise HTTPException(503, f"{what} unavailable ({reason}); check {setting} and that it is up, then retry",
+                            headers={"Retry-After": "5"}) from exc
+
+
+class Resources:
+    """The store and storage of one app, created on first use (a down database does not stop the
+    process from starting: ``/readyz`` reports it) and reused by every request."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._store: tuple[tuple, JobStore] | None = None
+        self._storage: tuple[str, DatasetStorage] | None = None
+
+    def store(self, settings: Settings) -> JobStore:
+        key = (settings.database_url, settings.max_attempts)
+        with self._lock:
+            if self._store is None or self._store[0] != key:
+                with _unavailable("job store", "BSSRDF_DATABASE_URL"):
+                    self._store = (key, JobStore(settings.database_url, max_attempts=settings.max_attempts))
+            return self._store[1]
+
+    def storage(self, settings: Settings) -> DatasetStorage:
+        with self._lock:
+            if self._storage is None or self._storage[0] != settings.storage_uri:
+                with _unavailable("dataset storage", "BSSRDF_STORAGE_URI"):
+                    self._storage = (settings.storage_uri, DatasetStorage(settings.storage_uri))
+            return self._storage[1]
+
+    def close(self) -> None:
+        with self._lock:
+            if self._store is not None:
+                self._store[1].dispose()
+            self._store = self._storage = None
+
+
+def get_store(request: Request, settings: SettingsDep) -> JobStore:
+    """The job store of ``settings.database_url``."""
+    return request.app.state.resources.store(settings)
+
+
+def get_storage(request: Request, settings: SettingsDep) -> DatasetStorage:
+    """The dataset storage at ``settings.storage_uri``."""
+    return request.app.state.resources.storage(settings)
+
+
+StoreDep = Annotated[JobStore, Depends(get_store)]
+StorageDep = Annotated[DatasetStorage, Depends(get_storage)]
+
+_bearer = HTTPBearer(
+    auto_error=False,
+    description="One of the tokens in BSSRDF_API_TOKENS. Needed by every mutating endpoint, and by "
+    "read endpoints when BSSRDF_READ_OPEN=false.",
+)
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+
+
+def _unauthorized(message: str, error: str | None = None) -> HTTPException:
+    challenge = 'Bearer realm="bssrdf"' + (f', error="{error}"' if error else "")
+    return HTTPException(401, message, headers={"WWW-Authenticate": challenge})
+
+
+def _check(settings: Settings, credentials: HTTPAuthorizationCredentials | None) -> str | None:
+    if not settings.api_tokens:
+        return None  # authentication off (loopback only; create_app enforces it)
+    if credentials is None:
+        raise _unauthorized("this endpoint needs a bearer token: send the header 'Authorization: Bearer TOKEN' "
+                            "with one of the tokens in BSSRDF_API_TOKENS (bssrdf client: --token or BSSRDF_TOKEN)")
+    given = credentials.credentials.encode()
+    # Constant time per token, and every token is compared (no early exit on a match).
+    matches = [secrets.compare_digest(given, t.encode()) for t in settings.api_tokens]
+    if not any(matches):
+        raise _unauthorized("the bearer token is not one of BSSRDF_API_TOKENS; check --token / BSSRDF_TOKEN",
+                            "invalid_token")
+    return credentials.credentials
+
+
+def require_token(settings: SettingsDep, credentials: Credentials) -> str | None:
+    """A valid bearer token (mutating endpoints)."""
+    return _check(settings, credentials)
+
+
+def require_read_token(settings: SettingsDep, credentials: Credentials) -> str | None:
+    """A valid bearer token unless reads are open (``settings.read_open``)."""
+    return None if settings.read_open else _check(settings, credentials)
+
+
+AuthDep = Annotated[str | None, Depends(require_token)]
+ReadAuthDep = Annotated[str | None, Depends(require_read_token)]
+
+
+def job_or_404(job_id: Annotated[str, Path(description="Job id returned by POST /v1/jobs.")],
+               store: StoreDep) -> JobRecord:
+    """The job named in the path (404 if there is none)."""
+    try:
+        return store.get_job(job_id)
+    except JobNotFound as exc:
+        raise HTTPException(404, f"{exc}; list jobs with GET /v1/jobs") from None
+
+
+JobDep = Annotated[JobRecord, Depends(job_or_404)]

@@ -1,0 +1,188 @@
+"""Request and response models of the HTTP API, named by role and separate from store records.
+
+``JobCreate`` is what a client sends; ``JobPublic`` / ``JobList`` / ``DatasetPublic`` /
+``DatasetVersionPublic`` / ``DatasetVersionDetail`` are what it gets back. ``Problem`` is one
+entry of a 422 body. The ``from_record`` constructors are the only place that knows both sides.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schema import SimulationSpec
+from service.store import DatasetRecord, DatasetVersionRecord, JobProgress, JobRecord, JobState
+
+__all__ = [
+    "JobCreate",
+    "JobProgressPublic",
+    "JobPublic",
+    "JobList",
+    "DatasetPublic",
+    "DatasetVersionPublic",
+    "DatasetVersionDetail",
+    "FileInfo",
+    "Problem",
+    "ErrorMessage",
+    "ValidationErrorBody",
+    "Health",
+    "Readiness",
+]
+
+IDEMPOTENCY_KEY_MAX = 200
+
+
+class JobCreate(BaseModel):
+    """A job submission: a simulation spec and an optional idempotency key."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    spec: SimulationSpec = Field(description="The simulation spec (the schema package's SimulationSpec).")
+    idempotency_key: str | None = Field(
+        None, min_length=1, max_length=IDEMPOTENCY_KEY_MAX,
+        description="Submitting again with the same key and spec returns the same job (200); "
+        "the same key with another spec is refused (409). Also accepted as the Idempotency-Key header.",
+    )
+
+
+class JobProgressPublic(BaseModel):
+    """Progress of a job: shard counts, photons, rate and ETA."""
+
+    shards_total: int
+    shards_queued: int = Field(description="Queued, or leased with an expired lease (will be re-claimed).")
+    shards_running: int = Field(description="Leased with a live lease.")
+    shards_done: int
+    shards_failed: int = Field(description="Failed or cancelled.")
+    merge_state: str = Field(description="State of the merge task (waiting, queued, leased, done, ...).")
+    photons_done: int = Field(description="Photons of done shards plus those reported by running shards.")
+    elapsed_s: float = Field(description="Seconds since the first claim (0 before).")
+    rate_photons_per_s: float | None
+    eta_s: float | None = Field(description="None until a shard finished; 0 once the job ended.")
+
+    @classmethod
+    def from_record(cls, p: JobProgress) -> "JobProgressPublic":
+        return cls(**{k: getattr(p, k) for k in cls.model_fields})
+
+
+class JobPublic(BaseModel):
+    """A job as the API shows it."""
+
+    id: str
+    name: str
+    state: JobState
+    shards: int
+    idempotency_key: str | None
+    created_at: float = Field(description="Seconds since the Unix epoch (database clock).")
+    updated_at: float
+    started_at: float | None
+    finished_at: float | None
+    error: str | None
+    dataset_name: str | None = Field(description="Set once the job succeeded.")
+    dataset_version: int | None
+    spec: dict[str, Any] = Field(description="The stored (fully defaulted) spec.")
+    progress: JobProgressPublic | None = Field(
+        None, description="Shards, photons, rate and ETA (in GET /v1/jobs/{id} and submit/cancel answers; "
+        "null in lists)."
+    )
+
+    @classmethod
+    def from_record(cls, job: JobRecord, progress: JobProgress | None = None) -> "JobPublic":
+        fields = {k: getattr(job, k) for k in cls.model_fields if k not in ("spec", "progress")}
+        return cls(**fields, spec=job.spec_dict,
+                   progress=None if progress is None else JobProgressPublic.from_record(progress))
+
+
+class JobList(BaseModel):
+    """One page of jobs, newest first."""
+
+    items: list[JobPublic]
+    limit: int
+    offset: int
+    next_offset: int | None = Field(description="Offset of the next page, None on the last page.")
+
+
+class DatasetPublic(BaseModel):
+    """A dataset name with its versions."""
+
+    name: str
+    latest_version: int
+    versions: int
+    updated_at: float
+
+
+class FileInfo(BaseModel):
+    """One stored file of a version."""
+
+    sha256: str
+    bytes: int | None = None
+
+
+class DatasetVersionPublic(BaseModel):
+    """One immutable dataset version."""
+
+    name: str
+    version: int
+    created_at: float
+    job_id: str | None
+    spec_hash: str | None
+    photons: int | None
+    shards: int | None
+    files: dict[str, FileInfo] = Field(description="Downloadable files (metadata.json included) and their sha256.")
+
+    @classmethod
+    def from_record(cls, v: DatasetVersionRecord) -> "DatasetVersionPublic":
+        meta = v.meta
+        files = {k: FileInfo(**f) for k, f in meta.get("files", {}).items()}
+        if "metadata_sha256" in meta:
+            files["metadata.json"] = FileInfo(sha256=meta["metadata_sha256"])
+        return cls(name=v.name, version=v.version, created_at=v.created_at, job_id=v.job_id,
+                   spec_hash=meta.get("spec_hash"), photons=meta.get("photons"), shards=meta.get("shards"),
+                   files=files)
+
+
+class DatasetVersionDetail(DatasetVersionPublic):
+    """A version with its metadata (spec, seed, photons, code version, timings) and its summary."""
+
+    metadata: dict[str, Any]
+    summary: Any = Field(description="Rd per estimator, incidence, channel and component, with errors.")
+
+    @classmethod
+    def from_record(cls, v: DatasetVersionRecord) -> "DatasetVersionDetail":
+        base = DatasetVersionPublic.from_record(v)
+        metadata = {k: x for k, x in v.meta.items() if k not in ("summary", "metadata_sha256")}
+        return cls(**base.model_dump(), metadata=metadata, summary=v.meta.get("summary"))
+
+
+def dataset_from_record(d: DatasetRecord) -> DatasetPublic:
+    return DatasetPublic(name=d.name, latest_version=d.latest_version, versions=d.versions, updated_at=d.updated_at)
+
+
+class Problem(BaseModel):
+    """One invalid field: where, what is wrong, what is allowed, what was received."""
+
+    field: str = Field(description="Dotted path, e.g. spec.medium.sigma_a or query.limit.")
+    message: str
+    allowed: str | None = Field(None, description="The allowed range or values, when known.")
+    received: Any = Field(None, description="The value received.")
+
+
+class ValidationErrorBody(BaseModel):
+    """422: every invalid field."""
+
+    detail: list[Problem]
+
+
+class ErrorMessage(BaseModel):
+    """Any other error: what went wrong and what to do."""
+
+    detail: str
+
+
+class Health(BaseModel):
+    status: str = "ok"
+
+
+class Readiness(BaseModel):
+    status: str
+    checks: dict[str, str]

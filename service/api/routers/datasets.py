@@ -1,0 +1,131 @@
+"""``/v1/datasets``: published dataset versions, their metadata, summaries and files."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Path
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import StreamingResponse
+
+from service.api.deps import ReadAuthDep, StorageDep, StoreDep
+from service.api.errors import error_responses
+from service.api.models import DatasetPublic, DatasetVersionDetail, DatasetVersionPublic, dataset_from_record
+from service.datasets import METADATA_FILE, DatasetStorage
+from service.store import ChecksumMismatch, DatasetVersionRecord, JobStore, VersionNotFound
+
+__all__ = ["router", "parse_version"]
+
+router = APIRouter(prefix="/v1/datasets", tags=["datasets"])
+
+_CHUNK = 1 << 20
+_MEDIA_TYPES = {".parquet": "application/vnd.apache.parquet", ".json": "application/json"}
+
+NamePath = Annotated[str, Path(description="Dataset name (the spec's name).")]
+VersionPath = Annotated[str, Path(description="Version number 1, 2, ... or `latest`.")]
+
+
+def parse_version(version: str) -> int | None:
+    """``"3"`` -> 3, ``"latest"`` -> None; anything else is a 422 naming the allowed values."""
+    if version == "latest":
+        return None
+    if version.isascii() and version.isdigit() and int(version) >= 1:
+        return int(version)
+    raise RequestValidationError([{
+        "type": "version", "loc": ("path", "version"), "input": version,
+        "msg": f"version must be a positive integer or 'latest'; received {version!r}",
+        "ctx": {"allowed": "1, 2, ... or latest"},
+    }])
+
+
+def _version(store: JobStore, name: str, version: str) -> DatasetVersionRecord:
+    number = parse_version(version)
+    try:
+        return store.get_version(name, number)
+    except VersionNotFound:
+        which = "no versions" if number is None else f"no version {number}"
+        raise HTTPException(404, f"dataset {name!r} has {which}; list its versions with "
+                                 f"GET /v1/datasets/{name}/versions, datasets with GET /v1/datasets") from None
+
+
+@router.get("", summary="List datasets", response_model=list[DatasetPublic], responses=error_responses(401, 503))
+def list_datasets(store: StoreDep, _token: ReadAuthDep) -> list[DatasetPublic]:
+    """Every dataset name with its latest version, by name."""
+    return [dataset_from_record(d) for d in store.list_datasets()]
+
+
+@router.get("/{name}/versions", summary="List the versions of a dataset",
+            response_model=list[DatasetVersionPublic], responses=error_responses(401, 404, 503))
+def list_versions(name: NamePath, store: StoreDep, _token: ReadAuthDep) -> list[DatasetVersionPublic]:
+    """Versions, oldest first, with their files and checksums."""
+    versions = store.list_versions(name)
+    if not versions:
+        raise HTTPException(404, f"no dataset named {name!r}; list datasets with GET /v1/datasets")
+    return [DatasetVersionPublic.from_record(v) for v in versions]
+
+
+@router.get("/{name}/versions/{version}", summary="Read a version: metadata and summary",
+            response_model=DatasetVersionDetail, responses=error_responses(401, 404, 422, 503))
+def get_version(name: NamePath, version: VersionPath, store: StoreDep, _token: ReadAuthDep) -> DatasetVersionDetail:
+    """The version's metadata (spec, seed, photons, shards, code version, timings, checksums) and
+    its summary (Rd per estimator, incidence angle, channel and component, with standard errors)."""
+    return DatasetVersionDetail.from_record(_version(store, name, version))
+
+
+def _expected_files(record: DatasetVersionRecord) -> dict[str, str]:
+    files = {k: f["sha256"] for k, f in record.meta.get("files", {}).items()}
+    files[METADATA_FILE] = record.meta["metadata_sha256"]
+    return files
+
+
+def _verified_path(storage: DatasetStorage, record: DatasetVersionRecord, filename: str, digest: str) -> str:
+    """Path of the file after checking its sha256 against the catalog (ChecksumMismatch otherwise)."""
+    path = f"{record.uri}/{filename}"
+    h = hashlib.sha256()
+    try:
+        with storage.fs.open_input_stream(path) as f:
+            while chunk := f.read(_CHUNK):
+                h.update(chunk)
+    except OSError as exc:
+        raise ChecksumMismatch(f"{record.name} v{record.version}: {filename} unreadable ({exc})") from exc
+    if h.hexdigest() != digest:
+        raise ChecksumMismatch(
+            f"{record.name} v{record.version}: {filename} has sha256 {h.hexdigest()}, published as {digest}; "
+            "the stored copy is corrupt: restore it from a backup or re-run the job"
+        )
+    return path
+
+
+def _stream(storage: DatasetStorage, path: str) -> Iterator[bytes]:
+    with storage.fs.open_input_stream(path) as f:
+        while chunk := f.read(_CHUNK):
+            yield chunk
+
+
+@router.get(
+    "/{name}/versions/{version}/files/{filename}",
+    summary="Download a file of a version",
+    response_class=StreamingResponse,
+    responses={200: {"content": {t: {} for t in _MEDIA_TYPES.values()},
+                     "description": "The file, after its sha256 matched the published checksum "
+                     "(also sent as the ETag)."},
+               **error_responses(401, 404, 422, 500, 503)},
+)
+def download_file(name: NamePath, version: VersionPath, store: StoreDep, storage: StorageDep, _token: ReadAuthDep,
+                  filename: Annotated[str, Path(description="radial.parquet, bins.parquet, summary.parquet, "
+                                                             "summary.json or metadata.json")]) -> StreamingResponse:
+    """One of the version's files, verified against the sha256 recorded at publish time; a
+    corrupt copy is never served (500). Only the files the version lists exist here."""
+    record = _version(store, name, version)
+    expected = _expected_files(record)
+    if filename not in expected:  # only catalogued names: no path ever comes from the request
+        raise HTTPException(404, f"{record.name} v{record.version} has no file {filename!r}; "
+                                 f"available: {', '.join(sorted(expected))}")
+    path = _verified_path(storage, record, filename, expected[filename])
+    suffix = filename[filename.rfind("."):]
+    headers = {"ETag": f'"{expected[filename]}"',
+               "Content-Disposition": f'attachment; filename="{record.name}-v{record.version}-{filename}"'}
+    return StreamingResponse(_stream(storage, path), media_type=_MEDIA_TYPES.get(suffix, "application/octet-stream"),
+                             headers=headers)

@@ -1,0 +1,93 @@
+"""``/v1/jobs``: submit, list, read and cancel jobs."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Response, status
+from fastapi.exceptions import RequestValidationError
+
+from service.api.deps import AuthDep, JobDep, ReadAuthDep, StoreDep
+from service.api.errors import error_responses
+from service.api.models import IDEMPOTENCY_KEY_MAX, JobCreate, JobList, JobPublic
+from service.store import JobState
+
+__all__ = ["router"]
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+
+def _idempotency_key(body: JobCreate, header: str | None) -> str | None:
+    if header is not None and body.idempotency_key is not None and header != body.idempotency_key:
+        raise RequestValidationError([{
+            "type": "value_error", "loc": ("header", "Idempotency-Key"), "input": header,
+            "msg": f"the Idempotency-Key header and the body's idempotency_key differ "
+                   f"({body.idempotency_key!r}); send one of them, or the same value in both",
+        }])
+    return header if header is not None else body.idempotency_key
+
+
+@router.post(
+    "",
+    summary="Submit a job",
+    response_model=JobPublic,
+    status_code=status.HTTP_201_CREATED,
+    responses={200: {"model": JobPublic, "description": "The idempotency key names an existing job with "
+                     "this spec: that job."}, **error_responses(401, 409, 422, 503)},
+)
+def submit_job(
+    body: JobCreate,
+    store: StoreDep,
+    _token: AuthDep,
+    response: Response,
+    idempotency_key: Annotated[str | None, Header(
+        alias="Idempotency-Key", min_length=1, max_length=IDEMPOTENCY_KEY_MAX,
+        description="Same as the body's idempotency_key.")] = None,
+) -> JobPublic:
+    """Validate the spec, store the job (its shard tasks and merge task) and return it.
+
+    An invalid spec is answered 422 with every bad field (``spec.medium.g`` ...), its allowed
+    range and the value received; nothing is stored. With an idempotency key, a retry with the
+    same spec returns the stored job with status 200; another spec under the same key is 409.
+    """
+    key = _idempotency_key(body, idempotency_key)
+    existing = store.job_by_idempotency_key(key) if key is not None else None
+    job = store.submit(body.spec, idempotency_key=key)  # IdempotencyConflict -> 409
+    if existing is not None:
+        response.status_code = status.HTTP_200_OK
+    response.headers["Location"] = f"{router.prefix}/{job.id}"
+    return JobPublic.from_record(job, store.progress(job.id))
+
+
+@router.get("", summary="List jobs", response_model=JobList, responses=error_responses(401, 422, 503))
+def list_jobs(
+    store: StoreDep,
+    _token: ReadAuthDep,
+    state: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000, description="Jobs per page.")] = 100,
+    offset: Annotated[int, Query(ge=0, description="Jobs to skip.")] = 0,
+) -> JobList:
+    """Jobs, newest first (``progress`` is null here: read one job for it)."""
+    jobs = store.list_jobs(state=state, limit=limit + 1, offset=offset)
+    more = len(jobs) > limit
+    return JobList(items=[JobPublic.from_record(j) for j in jobs[:limit]], limit=limit, offset=offset,
+                   next_offset=offset + limit if more else None)
+
+
+@router.get("/{job_id}", summary="Read a job and its progress", response_model=JobPublic,
+            responses=error_responses(401, 404, 503))
+def get_job(job: JobDep, store: StoreDep, _token: ReadAuthDep) -> JobPublic:
+    """State, shards queued / running / done / failed, photons done, rate, ETA, error, and the
+    dataset name and version once it succeeded."""
+    return JobPublic.from_record(job, store.progress(job.id))
+
+
+@router.post("/{job_id}/cancel", summary="Cancel a job", response_model=JobPublic,
+             responses=error_responses(401, 404, 409, 503))
+def cancel_job(job: JobDep, store: StoreDep, _token: AuthDep) -> JobPublic:
+    """Stop new claims and release the job's leases; late commits are refused.
+
+    Cancelling a cancelled job returns it unchanged; a succeeded or failed job is 409.
+    """
+    cancelled = store.cancel(job.id)  # JobNotActive -> 409
+    return JobPublic.from_record(cancelled, store.progress(job.id))
