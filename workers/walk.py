@@ -241,6 +241,27 @@ def compile_enabled() -> bool:
 _compile_lock = threading.Lock()
 
 
+def _release_gil_in_compiled_kernels() -> None:
+    """Let compiled CPU kernels run without the GIL, so shards on several Python threads run in
+    parallel (torch 2.13's inductor calls its C++ kernels holding the GIL).
+
+    The kernels only touch raw buffers whose tensors the calling frame keeps alive, so releasing
+    the GIL around the call is safe.  This edits the template of the generated Python binding
+    (part of the kernel's cache key, so kernels built without it are not reused); if a future
+    torch changes that template, nothing is changed and shards simply do not overlap.
+    """
+    try:
+        from torch._inductor.codecache import CppPythonBindingsCodeCache as Cache
+    except ImportError:  # pragma: no cover - other torch versions
+        return
+    template = getattr(Cache, "call_entry_function", None)
+    if template == "kernel({}); Py_RETURN_NONE;":
+        Cache.call_entry_function = "Py_BEGIN_ALLOW_THREADS kernel({}); Py_END_ALLOW_THREADS Py_RETURN_NONE;"
+
+
+_release_gil_in_compiled_kernels()
+
+
 def _maybe_compile(fn, compiled: bool):
     """torch.compile fn for a static lane count (dynamic shapes made the step 3x slower here; the
     shard runner always calls it on chunks of CHUNK lanes).  Calls run under a lock until the
