@@ -1,0 +1,115 @@
+"""The exit and connection estimators measure the same G per bin (ARCHITECTURE.md, estimators).
+
+Each comparison runs the two estimators in separate walks with different seeds, so the two
+estimates are independent and z = (a - b) / sqrt(se_a^2 + se_b^2) has unit spread exactly when
+both are unbiased and both error bars are honest.  (In one ``both`` run the estimators share
+photons: a photon that leaves near x_o also tends to have connected there, a positive covariance
+that shrinks the variance of the difference, so se_a^2 + se_b^2 would overstate it and the
+spread test would only be conservative.  Separate seeds avoid that.)  A last test checks that
+``both`` tallies exactly what the single-estimator runs tally.
+
+Medium: eta = 1.3, g = 0.9, albedo 0.9 (reduced albedo 0.47), sigma_t = 1/mm; radial bins log
+spaced out to 20 mm (~4 transport mean free paths, 5.3 mm).  Rd_multiple ~0.033, Rd_single
+~0.002.  Per-bin relative se of the multiple component: exits ~16 / sqrt(N) per bin (N = 1e5:
+3-17 %), connections ~10 / sqrt(N) (N = 1e4: 5-25 %); the connection estimator costs ~60
+vertices x 9 kernels per photon in weights mode (~10 vertices in analog mode), which sets N.
+
+Where a bin is small and close to the vertices (q_phase > q_uniform: d^2 < p_HG A, and the HG
+peak is 15/sr at g = 0.9), the MIS estimate rests on the phase technique, i.e. on rare photons
+heading into the bin, like the exit tally but with far fewer photons.  Its batch sums are then
+mostly zero, the batch standard error is unreliable and low estimates come with low error bars
+(seen: |z| up to 10 in such bins with 1e4 photons, agreement with 4e4).  So bins are compared
+only where both estimates are well resolved, relative se below 0.1 (about 100 or more
+contributing events, several per batch), and the bins are made large enough for that.
+Single scattering is compared at 45 deg, where the exit run is large enough; at normal
+incidence test_walk_exact checks it bin by bin against the exact profile for both estimators.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from workers.simulate import simulate
+
+MEDIUM = dict(sigma_a=0.1, sigma_s=0.9, g=0.9, eta=1.3)
+RESOLVED = 0.1  # largest relative standard error of a compared bin
+MIN_BINS = {"single": 2, "multiple": 5}  # fewer resolved bins would say little
+
+# (incidence, radial bins, first radial edge / r_max, n_theta, absorption, exit photons,
+# connection photons)
+CASES = {
+    "normal": ([0.0], 8, 0.01, 1, "weights", 100_000, 10_000),
+    "oblique45": ([45.0], 6, 0.05, 4, "analog", 500_000, 40_000),
+}
+
+
+def _spec(walk_spec, case: str, estimator: str, photons: int, seed: int):
+    incidence, n_r, min_fraction, n_theta, absorption, _, _ = CASES[case]
+    bins = {
+        "radial": {"count": n_r, "max_mm": 20.0, "spacing": "log", "min_fraction": min_fraction},
+        "theta_s": {"count": n_theta},
+        "cos_theta_o": {"count": 1},
+        "phi_o": {"count": 1},
+    }
+    return walk_spec(
+        **MEDIUM, bins=bins, incidence_deg=incidence, photons=photons, shards=1, batches_per_shard=32,
+        estimator=estimator, absorption=absorption, seed=seed,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def estimator_runs(walk_spec):
+    runs = {}
+    for i, (case, (*_, n_exit, n_conn)) in enumerate(CASES.items()):
+        runs[case] = {
+            "exits": simulate(_spec(walk_spec, case, "exits", n_exit, seed=51 + 2 * i)),
+            "connections": simulate(_spec(walk_spec, case, "connections", n_conn, seed=52 + 2 * i)),
+        }
+    return runs
+
+
+def _spatial(result, est: str, comp: int):
+    """G and its se per spatial bin (r incl. beyond r_max, theta_s): one direction bin each."""
+    return result.mean(f"{est}/bins_G")[0, comp, ..., 0, 0], result.stderr(f"{est}/bins_G")[0, comp, ..., 0, 0]
+
+
+@pytest.mark.parametrize(
+    "case, comp, comp_name",
+    [("normal", 1, "multiple"), ("oblique45", 1, "multiple"), ("oblique45", 0, "single")],
+)
+def test_estimators_agree_per_bin(estimator_runs, case, comp, comp_name, walk_stats):
+    ex, co = estimator_runs[case]["exits"], estimator_runs[case]["connections"]
+    g_e, se_e = _spatial(ex, "exits", comp)
+    g_c, se_c = _spatial(co, "connections", comp)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        resolved = (se_e < RESOLVED * g_e) & (se_c < RESOLVED * g_c)
+    assert resolved.sum() >= MIN_BINS[comp_name], f"only {resolved.sum()} resolved bins: {g_e} / {g_c}"
+    z = walk_stats.z(g_e[resolved], se_e[resolved], g_c[resolved], se_c[resolved])
+    dof = min(walk_stats.dof(ex), walk_stats.dof(co))
+    what = f"{case}, {comp_name}: exits vs connections over {resolved.sum()} bins"
+    walk_stats.assert_unit_spread(z, dof, what)
+    walk_stats.assert_within(z, dof, what)
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_estimators_agree_on_rd(estimator_runs, case, walk_stats):
+    ex, co = estimator_runs[case]["exits"], estimator_runs[case]["connections"]
+    z = walk_stats.z(ex.mean("exits/Rd")[0], ex.stderr("exits/Rd")[0], co.mean("connections/Rd")[0], co.stderr("connections/Rd")[0])
+    walk_stats.assert_within(z, min(walk_stats.dof(ex), walk_stats.dof(co)), f"{case}: Rd single, multiple, total")
+
+
+def test_both_tallies_what_each_estimator_tallies(walk_spec):
+    """estimator="both" gives the exit tally of an exits run and the connection tally of a
+    connections run with the same seed: the walk draws the same numbers for every photon."""
+    both = simulate(_spec(walk_spec, "oblique45", "both", 2000, seed=59))
+    for est in ("exits", "connections"):
+        alone = simulate(_spec(walk_spec, "oblique45", est, 2000, seed=59))
+        assert alone.estimators == [est]
+        for q in ("bins_G", "bins_S", "radial_G", "Rd"):
+            name = f"{est}/{q}"
+            # Summation order may differ (harvest timing), so equal to rounding, not bitwise.
+            np.testing.assert_allclose(both.mean(name), alone.mean(name), rtol=1e-10, atol=1e-15, err_msg=name)
+            np.testing.assert_allclose(both.stderr(name), alone.stderr(name), rtol=1e-6, atol=1e-13, err_msg=name)
+        for name in ("walk/absorbed", "walk/truncated"):
+            np.testing.assert_allclose(both.mean(name), alone.mean(name), rtol=1e-10, atol=1e-15, err_msg=name)
