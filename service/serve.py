@@ -1,0 +1,65 @@
+"""``bssrdf serve``: run the HTTP API with uvicorn.
+
+    bssrdf serve [--host 127.0.0.1] [--port 8000] [--db URL] [--storage URI]
+
+Every option defaults to its setting (``BSSRDF_HOST``, ``BSSRDF_PORT``, ``BSSRDF_DATABASE_URL``,
+``BSSRDF_STORAGE_URI``). Refuses to start on a non-loopback address unless ``BSSRDF_API_TOKENS``
+is set. The API does not run simulations: start ``bssrdf worker`` processes against the same
+database and storage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+__all__ = ["add_parser", "main", "build_settings"]
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``serve`` subcommand to an argparse ``subparsers`` object."""
+    p = subparsers.add_parser("serve", help="serve the HTTP API (uvicorn)", description=__doc__.split("\n\n")[0])
+    _add_arguments(p)
+    p.set_defaults(func=main)
+    return p
+
+
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default=None, help="bind address (default: BSSRDF_HOST or 127.0.0.1)")
+    p.add_argument("--port", type=int, default=None, help="bind port (default: BSSRDF_PORT or 8000)")
+    p.add_argument("--db", default=None, help="job store URL (default: BSSRDF_DATABASE_URL or the local SQLite store)")
+    p.add_argument("--storage", default=None, help="dataset storage URI (default: BSSRDF_STORAGE_URI or the local data dir)")
+    p.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+
+
+def build_settings(args: argparse.Namespace):
+    """Settings from the environment with the command-line options applied."""
+    from service.settings import Settings
+
+    updates = {"host": args.host, "port": args.port, "database_url": args.db, "storage_uri": args.storage}
+    # Validate the updated values like the environment's (port range...): re-run the model.
+    base = Settings()
+    return Settings.model_validate({**base.model_dump(), **{k: v for k, v in updates.items() if v is not None}})
+
+
+def main(args: argparse.Namespace) -> int:
+    """Serve until interrupted; returns the exit status (2 on a configuration error)."""
+    import uvicorn
+    from pydantic import ValidationError
+
+    from service.api import InsecureBindError, create_app
+
+    try:
+        settings = build_settings(args)
+        app = create_app(settings)
+    except (InsecureBindError, ValidationError) as exc:
+        print(f"bssrdf serve: {exc}", file=sys.stderr)
+        return 2
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level)
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="bssrdf serve", description=__doc__.split("\n\n")[0])
+    _add_arguments(parser)
+    sys.exit(main(parser.parse_args()))
