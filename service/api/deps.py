@@ -7,6 +7,8 @@
     ReadAuthDep   the same unless ``settings.read_open``: read endpoints
     JobDep        the job named by the ``{job_id}`` path parameter, or 404
 
+Routes declare the auth dependency as their first parameter: dependencies are resolved in order,
+so a caller without a valid token gets 401 before anything is looked up (no 404 or 422 leaks).
 With no tokens configured, authentication is off; :func:`service.api.app.create_app` allows that
 only on a loopback address.
 """

@@ -51,14 +51,14 @@ def _version(store: JobStore, name: str, version: str) -> DatasetVersionRecord:
 
 
 @router.get("", summary="List datasets", response_model=list[DatasetPublic], responses=error_responses(401, 503))
-def list_datasets(store: StoreDep, _token: ReadAuthDep) -> list[DatasetPublic]:
+def list_datasets(_token: ReadAuthDep, store: StoreDep) -> list[DatasetPublic]:
     """Every dataset name with its latest version, by name."""
     return [dataset_from_record(d) for d in store.list_datasets()]
 
 
 @router.get("/{name}/versions", summary="List the versions of a dataset",
             response_model=list[DatasetVersionPublic], responses=error_responses(401, 404, 503))
-def list_versions(name: NamePath, store: StoreDep, _token: ReadAuthDep) -> list[DatasetVersionPublic]:
+def list_versions(_token: ReadAuthDep, name: NamePath, store: StoreDep) -> list[DatasetVersionPublic]:
     """Versions, oldest first, with their files and checksums."""
     versions = store.list_versions(name)
     if not versions:
@@ -68,7 +68,7 @@ def list_versions(name: NamePath, store: StoreDep, _token: ReadAuthDep) -> list[
 
 @router.get("/{name}/versions/{version}", summary="Read a version: metadata and summary",
             response_model=DatasetVersionDetail, responses=error_responses(401, 404, 422, 503))
-def get_version(name: NamePath, version: VersionPath, store: StoreDep, _token: ReadAuthDep) -> DatasetVersionDetail:
+def get_version(_token: ReadAuthDep, name: NamePath, version: VersionPath, store: StoreDep) -> DatasetVersionDetail:
     """The version's metadata (spec, seed, photons, shards, code version, timings, checksums) and
     its summary (Rd per estimator, incidence angle, channel and component, with standard errors)."""
     return DatasetVersionDetail.from_record(_version(store, name, version))
@@ -113,7 +113,7 @@ def _stream(storage: DatasetStorage, path: str) -> Iterator[bytes]:
                      "(also sent as the ETag)."},
                **error_responses(401, 404, 422, 500, 503)},
 )
-def download_file(name: NamePath, version: VersionPath, store: StoreDep, storage: StorageDep, _token: ReadAuthDep,
+def download_file(_token: ReadAuthDep, name: NamePath, version: VersionPath, store: StoreDep, storage: StorageDep,
                   filename: Annotated[str, Path(description="radial.parquet, bins.parquet, summary.parquet, "
                                                              "summary.json or metadata.json")]) -> StreamingResponse:
     """One of the version's files, verified against the sha256 recorded at publish time; a

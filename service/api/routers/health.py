@@ -47,6 +47,6 @@ def readyz(store: StoreDep, storage: StorageDep) -> Readiness | JSONResponse:
 @router.get("/metrics", summary="Prometheus metrics", response_class=PlainTextResponse,
             responses={200: {"content": {CONTENT_TYPE: {}}, "description": "Prometheus text format 0.0.4."},
                        **error_responses(401, 503)})
-def metrics(store: StoreDep, _token: ReadAuthDep) -> PlainTextResponse:
+def metrics(_token: ReadAuthDep, store: StoreDep) -> PlainTextResponse:
     """Jobs by state; task claims, completed shards and merges, expired leases; photons simulated."""
     return PlainTextResponse(render_metrics(store.metrics()), media_type=CONTENT_TYPE)

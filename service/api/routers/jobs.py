@@ -36,9 +36,9 @@ def _idempotency_key(body: JobCreate, header: str | None) -> str | None:
                      "this spec: that job."}, **error_responses(401, 409, 422, 503)},
 )
 def submit_job(
+    _token: AuthDep,
     body: JobCreate,
     store: StoreDep,
-    _token: AuthDep,
     response: Response,
     idempotency_key: Annotated[str | None, Header(
         alias="Idempotency-Key", min_length=1, max_length=IDEMPOTENCY_KEY_MAX,
@@ -61,8 +61,8 @@ def submit_job(
 
 @router.get("", summary="List jobs", response_model=JobList, responses=error_responses(401, 422, 503))
 def list_jobs(
-    store: StoreDep,
     _token: ReadAuthDep,
+    store: StoreDep,
     state: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
     limit: Annotated[int, Query(ge=1, le=1000, description="Jobs per page.")] = 100,
     offset: Annotated[int, Query(ge=0, description="Jobs to skip.")] = 0,
@@ -76,7 +76,7 @@ def list_jobs(
 
 @router.get("/{job_id}", summary="Read a job and its progress", response_model=JobPublic,
             responses=error_responses(401, 404, 503))
-def get_job(job: JobDep, store: StoreDep, _token: ReadAuthDep) -> JobPublic:
+def get_job(_token: ReadAuthDep, job: JobDep, store: StoreDep) -> JobPublic:
     """State, shards queued / running / done / failed, photons done, rate, ETA, error, and the
     dataset name and version once it succeeded."""
     return JobPublic.from_record(job, store.progress(job.id))
@@ -84,7 +84,7 @@ def get_job(job: JobDep, store: StoreDep, _token: ReadAuthDep) -> JobPublic:
 
 @router.post("/{job_id}/cancel", summary="Cancel a job", response_model=JobPublic,
              responses=error_responses(401, 404, 409, 503))
-def cancel_job(job: JobDep, store: StoreDep, _token: AuthDep) -> JobPublic:
+def cancel_job(_token: AuthDep, job: JobDep, store: StoreDep) -> JobPublic:
     """Stop new claims and release the job's leases; late commits are refused.
 
     Cancelling a cancelled job returns it unchanged; a succeeded or failed job is 409.

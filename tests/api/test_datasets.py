@@ -1,0 +1,122 @@
+"""/v1/datasets: listing, versions, metadata and summary, verified downloads (a real published job)."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+
+import pyarrow.parquet as pq
+import pytest
+
+FILES = ("radial.parquet", "bins.parquet", "summary.parquet", "summary.json", "metadata.json")
+
+
+@pytest.fixture
+def ds_client(make_client, published):
+    store, storage, _jobs = published
+    return make_client(store, storage)
+
+
+def test_list_datasets_and_versions(ds_client, published):
+    _store, _storage, jobs = published
+    assert ds_client.get("/v1/datasets").json() == [
+        {"name": "tiny", "latest_version": 2, "versions": 2, "updated_at": pytest.approx(jobs[1].finished_at, abs=5)}
+    ]
+    versions = ds_client.get("/v1/datasets/tiny/versions").json()
+    assert [v["version"] for v in versions] == [1, 2]
+    assert {v["job_id"] for v in versions} == {j.id for j in jobs}
+    assert set(versions[0]["files"]) == set(FILES)
+    assert all(len(f["sha256"]) == 64 for f in versions[0]["files"].values())
+    assert versions[0]["photons"] == 200 and versions[0]["shards"] == 2  # one channel, one angle
+    r = ds_client.get("/v1/datasets/nothing-here/versions")
+    assert r.status_code == 404 and "GET /v1/datasets" in r.json()["detail"]
+
+
+def test_version_detail_has_metadata_and_summary_and_latest_works(ds_client, published):
+    _store, _storage, jobs = published
+    v1 = ds_client.get("/v1/datasets/tiny/versions/1").json()
+    assert v1["version"] == 1 and v1["job_id"] == jobs[0].id
+    meta = v1["metadata"]
+    assert meta["spec"]["seed"] == 7 and meta["seed"] == 7 and meta["shards"] == 2
+    assert meta["code_version"]["package"] and meta["files"]["radial.parquet"]["sha256"]
+    assert v1["summary"]["name"] == "tiny" and v1["summary"]["results"]
+    assert {r["component"] for r in v1["summary"]["results"]} == {"single", "multiple", "total"}
+    latest = ds_client.get("/v1/datasets/tiny/versions/latest").json()
+    assert latest["version"] == 2 and latest["metadata"]["seed"] == 8
+
+
+@pytest.mark.parametrize("version, status", [("3", 404), ("0", 422), ("-1", 422), ("v1", 422), ("1.5", 422),
+                                             ("LATEST", 422)])
+def test_bad_or_unknown_versions(ds_client, version, status):
+    r = ds_client.get(f"/v1/datasets/tiny/versions/{version}")
+    assert r.status_code == status, r.text
+    if status == 422:
+        (p,) = r.json()["detail"]
+        assert p["field"] == "path.version" and p["received"] == version and "latest" in p["allowed"]
+    else:
+        assert "no version 3" in r.json()["detail"] and "/v1/datasets/tiny/versions" in r.json()["detail"]
+
+
+@pytest.mark.parametrize("version", ["1", "latest"])
+def test_downloads_are_the_published_bytes(ds_client, published, version):
+    store, _storage, _jobs = published
+    record = store.get_version("tiny", None if version == "latest" else int(version))
+    for name in FILES:
+        r = ds_client.get(f"/v1/datasets/tiny/versions/{version}/files/{name}")
+        assert r.status_code == 200, r.text
+        digest = hashlib.sha256(r.content).hexdigest()
+        expected = record.meta["metadata_sha256"] if name == "metadata.json" else record.meta["files"][name]["sha256"]
+        assert digest == expected and r.headers["etag"] == f'"{expected}"'
+        assert f"tiny-v{record.version}-{name}" in r.headers["content-disposition"]
+        if name.endswith(".parquet"):
+            assert r.headers["content-type"] == "application/vnd.apache.parquet"
+            assert pq.read_table(io.BytesIO(r.content)).num_rows > 0
+        else:
+            assert r.headers["content-type"].startswith("application/json")
+            json.loads(r.content)
+    summary = ds_client.get(f"/v1/datasets/tiny/versions/{version}/files/summary.json").json()
+    assert summary == ds_client.get(f"/v1/datasets/tiny/versions/{version}").json()["summary"]
+
+
+@pytest.mark.parametrize("name", ["nope.parquet", "%2E%2E", "../v2/radial.parquet", "..%2Fv2%2Fradial.parquet",
+                                  "%2e%2e%2f..%2fjobs.sqlite", ".staging", "RADIAL.parquet"])
+def test_unknown_file_names_are_404_and_nothing_outside_the_version_is_served(ds_client, name):
+    r = ds_client.get(f"/v1/datasets/tiny/versions/1/files/{name}")
+    assert r.status_code == 404, (name, r.status_code, r.text[:200])
+    if r.headers["content-type"].startswith("application/json") and "available" in r.text:
+        assert "radial.parquet" in r.json()["detail"]  # names what exists
+
+
+def test_unknown_dataset_file_is_404(ds_client):
+    r = ds_client.get("/v1/datasets/other/versions/latest/files/radial.parquet")
+    assert r.status_code == 404 and "no versions" in r.json()["detail"]
+
+
+@pytest.mark.parametrize("name", ["radial.parquet", "summary.json", "metadata.json"])
+def test_a_corrupted_file_is_not_served(ds_client, published, name):
+    store, storage, _jobs = published
+    path = f"{store.get_version('tiny', 1).uri}/{name}"
+    with storage.fs.open_input_stream(path) as f:
+        original = f.read()
+    try:
+        corrupted = bytearray(original)
+        corrupted[len(corrupted) // 2] ^= 0xFF  # one flipped byte, same size
+        with storage.fs.open_output_stream(path) as f:
+            f.write(bytes(corrupted))
+        r = ds_client.get(f"/v1/datasets/tiny/versions/1/files/{name}")
+        assert r.status_code == 500
+        detail = r.json()["detail"]
+        assert "checksum verification failed" in detail and name in detail and "corrupt" in detail
+        assert bytes(corrupted) not in r.content
+        # the other files and the other version are still served
+        other = "bins.parquet" if name != "bins.parquet" else "radial.parquet"
+        assert ds_client.get(f"/v1/datasets/tiny/versions/1/files/{other}").status_code == 200
+        assert ds_client.get(f"/v1/datasets/tiny/versions/2/files/{name}").status_code == 200
+        storage.fs.delete_file(path)  # a missing file: same answer
+        r = ds_client.get(f"/v1/datasets/tiny/versions/1/files/{name}")
+        assert r.status_code == 500 and "unreadable" in r.json()["detail"]
+    finally:
+        with storage.fs.open_output_stream(path) as f:
+            f.write(original)
+    assert ds_client.get(f"/v1/datasets/tiny/versions/1/files/{name}").status_code == 200
