@@ -1,0 +1,160 @@
+"""Standard errors are honest, and the stored tables are the tallies in the documented units.
+
+Honesty: N_RUNS independent runs (different seeds) of one small spec; for every quantity q the
+scatter of the runs' estimates x_i about their mean must match the reported standard errors:
+with the pooled se^2 = mean_i se_i^2 (N_RUNS x (K - 1) degrees of freedom, nearly exact),
+Q = sum_i (x_i - mean x)^2 / se^2 is chi-square with N_RUNS - 1 degrees of freedom.  Each run is
+also compared with the mean of the others, z_i = (x_i - mean_{j != i} x_j) / sqrt(se_i^2 +
+sum_{j != i} se_j^2 / (N_RUNS - 1)^2): (N_RUNS - 1) / N_RUNS * sum z_i^2 ~ chi-square(N_RUNS - 1)
+as well, and every |z_i| stays under the Student-t cut.  Quantities: Rd single / multiple /
+total and the multiple component of every radial ring, for both estimators.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from workers.output import summary, write_tables
+from workers.simulate import simulate
+
+N_RUNS = 24
+# Weights mode, albedo 0.7 (~20 vertices per photon), g = 0.5, eta = 1.3, sigma_t = 1/mm; four
+# 0.75 mm rings.  4096 photons per run in 16 batches resolve each quantity to a few percent.
+HONEST_SPEC = dict(
+    sigma_a=0.3, sigma_s=0.7, g=0.5, eta=1.3, n_r=4, max_mm=3.0, photons=4096, shards=2,
+    batches_per_shard=8, estimator="both",
+)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def repeated_runs(walk_spec):
+    return [simulate(walk_spec(**HONEST_SPEC, seed=1000 + i)) for i in range(N_RUNS)]
+
+
+@pytest.mark.parametrize("est", ["exits", "connections"])
+def test_standard_errors_are_honest(repeated_runs, est, walk_stats):
+    def stack(name: str, index) -> tuple[np.ndarray, np.ndarray]:
+        return (np.array([r.mean(name)[index] for r in repeated_runs]), np.array([r.stderr(name)[index] for r in repeated_runs]))
+
+    n_r = repeated_runs[0].layout.n_r
+    quantities = {f"Rd {c}": stack(f"{est}/Rd", (0, k)) for k, c in enumerate(("single", "multiple", "total"))}
+    quantities.update({f"ring {i} multiple": stack(f"{est}/radial_G", (0, 1, i)) for i in range(n_r)})
+    m = len(quantities)
+    n = N_RUNS
+    lo, hi = walk_stats.chi2_band(n - 1, n_tests=m)
+    dof = walk_stats.dof(repeated_runs[0])
+    for what, (x, se) in quantities.items():
+        assert np.all(se > 0), f"{est} {what}: zero standard error"
+        q = float(np.sum((x - x.mean()) ** 2) / np.mean(se**2))
+        others = (x.sum() - x) / (n - 1)
+        z = (x - others) / np.sqrt(se**2 + (np.sum(se**2) - se**2) / (n - 1) ** 2)
+        q_loo = (n - 1) / n * float(np.sum(z * z))
+        print(f"{est} {what}: Q = {q:.1f}, from z_i {q_loo:.1f} (chi-square {n - 1}, band [{lo:.1f}, {hi:.1f}]), "
+              f"sample variance of z {np.var(z, ddof=1):.2f}")  # fmt: skip
+        assert lo <= q <= hi, f"{est} {what}: spread of {n} runs is {math.sqrt(q / (n - 1)):.2f} x the reported se (Q = {q:.1f})"
+        walk_stats.assert_within(z, dof, f"{est} {what}: leave-one-out z", n_tests=n * m)
+
+
+# ---------------------------------------------------------------------------------------------
+# Tables: two channels (so radial edges in transport mfp differ per channel), two incidence
+# angles (configuration = incidence index * n_channels + channel), every bin axis split.
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def table_run(tmp_path_factory):
+    from schema import SimulationSpec
+
+    spec = SimulationSpec.model_validate({
+        "name": "tables",
+        "medium": {"sigma_a": [0.3, 0.1], "sigma_s": [0.7, 1.8], "g": [0.5, 0.0], "eta": 1.3},
+        "incidence_deg": [0.0, 30.0],
+        "bins": {"radial": {"count": 3, "max_mfp": 2.0, "spacing": "linear"}, "theta_s": {"count": 3},
+                 "cos_theta_o": {"count": 2}, "phi_o": {"count": 2}},
+        "photons": 2000, "shards": 2, "batches_per_shard": 4, "estimator": "both", "absorption": "analog", "seed": 77,
+    })  # fmt: skip
+    result = simulate(spec)
+    out = tmp_path_factory.mktemp("tables")
+    write_tables(result, str(out))
+    return result, out
+
+
+def _columns(path) -> dict[str, np.ndarray]:
+    return {k: np.asarray(v) for k, v in pq.read_table(path).to_pydict().items()}
+
+
+def _cfg_comp(result, t: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Configuration and component index of every row, from its incidence and channel names."""
+    c = result.configs
+    inc = np.searchsorted(np.array(c.incidence_deg), t["incidence_deg"])
+    assert np.array_equal(np.array(c.incidence_deg)[inc], t["incidence_deg"])
+    ch = np.array([c.channel_names.index(name) for name in t["channel"]])
+    comp = np.array([("single", "multiple", "total").index(name) for name in t["component"]])
+    return inc * len(c.channel_names) + ch, comp
+
+
+def test_radial_table_is_radial_g_over_annulus_area(table_run):
+    result, out = table_run
+    t = _columns(out / "radial.parquet")
+    cfg, comp = _cfg_comp(result, t)
+    ch = cfg % len(result.configs.channel_names)
+    edges = result.spec.radial_edges_mm()  # [channel, n_r + 1]
+    ir = np.array([np.flatnonzero(edges[c] == lo)[0] for c, lo in zip(ch, t["r_lo_mm"])])
+    assert np.array_equal(edges[ch, ir + 1], t["r_hi_mm"])
+    area = math.pi * (t["r_hi_mm"] ** 2 - t["r_lo_mm"] ** 2)
+    n_rows = 0
+    for est in ("exits", "connections"):
+        sel = t["estimator"] == est
+        n_rows += sel.sum()
+        g = result.mean(f"{est}/radial_G")[cfg[sel], comp[sel], ir[sel]]
+        se = result.stderr(f"{est}/radial_G")[cfg[sel], comp[sel], ir[sel]]
+        np.testing.assert_allclose(t["Rd_r"][sel], g / area[sel], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(t["Rd_r_stderr"][sel], se / area[sel], rtol=1e-12, atol=0)
+    assert n_rows == len(t["Rd_r"]) == 2 * result.configs.n * 3 * result.layout.n_r
+
+
+def test_bins_table_is_g_and_s_over_area_and_solid_angle(table_run):
+    result, out = table_run
+    t = _columns(out / "bins.parquet")
+    L = result.layout
+    cfg, comp = _cfg_comp(result, t)
+    ch = cfg % len(result.configs.channel_names)
+    edges = result.spec.radial_edges_mm()
+    ir = np.array([np.flatnonzero(edges[c] == lo)[0] for c, lo in zip(ch, t["r_lo_mm"])])
+    it = np.searchsorted(L.theta_s, t["theta_s_lo"])
+    ic = np.searchsorted(L.cos_o, t["cos_theta_o_lo"])
+    ip = np.searchsorted(L.phi_o, t["phi_o_lo"])
+    for lo_col, hi_col, ax, idx in (("theta_s_lo", "theta_s_hi", L.theta_s, it), ("cos_theta_o_lo", "cos_theta_o_hi", L.cos_o, ic),
+                                    ("phi_o_lo", "phi_o_hi", L.phi_o, ip)):  # fmt: skip
+        assert np.array_equal(ax[idx], t[lo_col]) and np.array_equal(ax[idx + 1], t[hi_col])
+    # A = (r_hi^2 - r_lo^2) / 2 * dtheta_s, Omega = dcos * dphi (ARCHITECTURE.md, bins).
+    area = 0.5 * (t["r_hi_mm"] ** 2 - t["r_lo_mm"] ** 2) * (t["theta_s_hi"] - t["theta_s_lo"])
+    omega = (t["cos_theta_o_hi"] - t["cos_theta_o_lo"]) * (t["phi_o_hi"] - t["phi_o_lo"])
+    for est in ("exits", "connections"):
+        sel = t["estimator"] == est
+        index = (cfg[sel], comp[sel], ir[sel], it[sel], ic[sel], ip[sel])
+        for col, q, scale in (("G", "bins_G", 1.0), ("S", "bins_S", area[sel] * omega[sel])):
+            np.testing.assert_allclose(t[col][sel], result.mean(f"{est}/{q}")[index] / scale, rtol=1e-12, atol=0)
+            np.testing.assert_allclose(t[f"{col}_stderr"][sel], result.stderr(f"{est}/{q}")[index] / scale, rtol=1e-12, atol=0)
+        # Every bin inside r_max appears exactly once.
+        assert len(set(zip(*index))) == sel.sum() == result.configs.n * 3 * L.n_r * L.n_theta * L.n_cos * L.n_phi
+
+
+def test_g_over_all_bins_and_beyond_is_rd(table_run):
+    result, out = table_run
+    rows = summary(result)["results"]
+    t = _columns(out / "bins.parquet")
+    for est in ("exits", "connections"):
+        bins_g = result.mean(f"{est}/bins_G")
+        rd = result.mean(f"{est}/Rd")
+        np.testing.assert_allclose(bins_g.sum(axis=(2, 3, 4, 5)), rd, rtol=1e-12, atol=1e-17)
+        np.testing.assert_allclose(result.mean(f"{est}/radial_G").sum(axis=2), rd, rtol=1e-12, atol=1e-17)
+        # total = single + multiple
+        np.testing.assert_allclose(rd[:, 0] + rd[:, 1], rd[:, 2], rtol=1e-12, atol=1e-17)
+        assert np.all(rd[:, 2] > 0)
+        # From the files: G of the table's rows plus the summary's flux beyond r_max is Rd.
+        for r in (r for r in rows if r["estimator"] == est):
+            sel = (t["estimator"] == est) & (t["incidence_deg"] == r["incidence_deg"]) & (t["channel"] == r["channel"]) & (t["component"] == r["component"])
+            assert t["G"][sel].sum() + r["Rd_beyond_rmax"] == pytest.approx(r["Rd"], rel=1e-12, abs=1e-17)
