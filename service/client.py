@@ -22,13 +22,19 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, TextIO
+from urllib.parse import quote
 
 import httpx
 
-__all__ = ["ApiClient", "ApiError", "add_parser", "format_error", "follow_job", "TERMINAL_STATES"]
+__all__ = ["ApiClient", "ApiError", "add_parser", "main", "format_error", "follow_job", "TERMINAL_STATES"]
 
 DEFAULT_API = "http://127.0.0.1:8000"
 TERMINAL_STATES = frozenset({"succeeded", "failed", "cancelled"})
+
+
+def _seg(value: Any) -> str:
+    """One URL path segment: a user-given name can never become a different path."""
+    return quote(str(value), safe="")
 
 
 class ApiError(Exception):
@@ -59,10 +65,13 @@ def format_error(status: int, detail: Any, url: str = "") -> str:
 class ApiClient:
     """A thin httpx client of the API: bearer token, JSON, errors raised as :class:`ApiError`."""
 
-    def __init__(self, base_url: str, token: str | None = None, timeout: float = 30.0) -> None:
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
+    def __init__(self, base_url: str, token: str | None = None, timeout: float = 30.0,
+                 http: httpx.Client | None = None) -> None:
+        """``http``: an existing httpx client to send through (e.g. FastAPI's TestClient)."""
         self.base_url = base_url.rstrip("/")
-        self.http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
+        self.http = http if http is not None else httpx.Client(base_url=self.base_url, timeout=timeout)
+        if token:
+            self.http.headers["Authorization"] = f"Bearer {token}"
 
     def close(self) -> None:
         self.http.close()
@@ -91,11 +100,11 @@ class ApiClient:
         return self.request("POST", "/v1/jobs", json=body).json()
 
     def job(self, job_id: str) -> dict[str, Any]:
-        return self.get_json(f"/v1/jobs/{job_id}")
+        return self.get_json(f"/v1/jobs/{_seg(job_id)}")
 
     def summary(self, name: str, version: int | str) -> dict[str, Any]:
         """The version's summary.json (checksum-verified by the server)."""
-        return self.get_json(f"/v1/datasets/{name}/versions/{version}/files/summary.json")
+        return self.get_json(f"/v1/datasets/{_seg(name)}/versions/{_seg(version)}/files/summary.json")
 
 
 # --- progress display ---
@@ -247,17 +256,17 @@ def cmd_datasets(args: argparse.Namespace) -> int:
     client = _client(args)
     try:
         if args.download:
-            path = f"/v1/datasets/{args.name}/versions/{args.version}/files/{args.download}"
-            out = Path(args.output or args.download)
+            path = f"/v1/datasets/{_seg(args.name)}/versions/{_seg(args.version)}/files/{_seg(args.download)}"
+            out = Path(args.output or Path(args.download).name)
             data = client.request("GET", path).content  # verified against its sha256 by the server
             out.write_bytes(data)
             print(f"wrote {out} ({len(data)} bytes)", file=sys.stderr)
             return 0
         if args.version:
-            doc = client.get_json(f"/v1/datasets/{args.name}/versions/{args.version}")
+            doc = client.get_json(f"/v1/datasets/{_seg(args.name)}/versions/{_seg(args.version)}")
             text = _version_text
         elif args.name:
-            doc = client.get_json(f"/v1/datasets/{args.name}/versions")
+            doc = client.get_json(f"/v1/datasets/{_seg(args.name)}/versions")
             text = _versions_text
         else:
             doc = client.get_json("/v1/datasets")
@@ -330,3 +339,15 @@ def add_parser(subparsers) -> None:
     p.add_argument("-o", "--output", metavar="PATH", help="where to save --download (default: FILE)")
     _common(p)
     p.set_defaults(func=_guard(cmd_datasets))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m service.client submit|status|datasets ...`` (the same as ``bssrdf ...``)."""
+    parser = argparse.ArgumentParser(prog="bssrdf", description="Client of the bssrdf-db HTTP API.")
+    add_parser(parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
