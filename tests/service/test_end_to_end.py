@@ -31,8 +31,10 @@ def tiny_spec(name: str, photons: int, shards: int):
     from schema import parse_spec
 
     data = json.loads((REPO / "examples" / "skimmilk.json").read_text())
+    # max_scatter bounds each shard's duration (skim milk paths run to thousands of events; the
+    # truncated weight is reported), so a shard lasts a second or two on the eager walk.
     data.update(name=name, photons=photons, shards=shards, batches_per_shard=1 if shards > 1 else 2,
-                estimator="exits")
+                estimator="exits", max_scatter=2000)
     data["bins"] = {"radial": {"count": 8, "max_mfp": 16.0, "spacing": "log"},
                     "cos_theta_o": {"count": 2}, "phi_o": {"count": 2}}
     return parse_spec(data)
