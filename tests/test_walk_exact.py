@@ -26,15 +26,16 @@ SINGLE, MULTIPLE, TOTAL = 0, 1, 2
 # Chandrasekhar: isotropic scattering, eta = 1, normal incidence, Rd = 1 - sqrt(1 - a) H(1).
 # Per-photon sd of Rd (total): weights ~0.21 (a = 0.5), ~0.30 (0.99); analog sqrt(Rd (1 - Rd)).
 # Cost is the walk's tail: a shard runs until its longest photon ends (thousands of steps at
-# a = 0.999, analog: lifetime 1 / (1 - a) collisions), so every case runs as one shard.
+# a = 0.999, analog: lifetime 1 / (1 - a) collisions), so every case runs as two shards, one
+# per core (simulate runs shards concurrently).
 # a = 0.5: N = 2^19 -> se ~ 2.9e-4 (0.25 % of Rd); a = 0.9: N = 2^18 -> se ~ 9.6e-4 (0.23 %);
 # a = 0.99: N = 2^17 -> se ~ 9e-4 (0.12 %); a = 0.999: N = 2^15 -> se ~ 1.6e-3 (0.18 %).
 # ---------------------------------------------------------------------------------------------
 H_CASES = [
-    pytest.param(0.5, "weights", 2**19, 1, 32, id="a0.5-weights"),
-    pytest.param(0.9, "analog", 2**18, 1, 32, id="a0.9-analog"),
-    pytest.param(0.99, "weights", 2**17, 1, 32, id="a0.99-weights", marks=pytest.mark.slow),
-    pytest.param(0.999, "analog", 2**15, 1, 32, id="a0.999-analog", marks=pytest.mark.slow),
+    pytest.param(0.5, "weights", 2**19, 2, 16, id="a0.5-weights"),
+    pytest.param(0.9, "analog", 2**18, 2, 16, id="a0.9-analog"),
+    pytest.param(0.99, "weights", 2**17, 2, 16, id="a0.99-weights", marks=pytest.mark.slow),
+    pytest.param(0.999, "analog", 2**15, 2, 16, id="a0.999-analog", marks=pytest.mark.slow),
 ]
 
 
@@ -92,8 +93,8 @@ def single_runs(walk_spec):
     runs = {}
     for seed, (est, photons) in enumerate(SS_PHOTONS.items(), start=21):
         spec = walk_spec(
-            **SS_MEDIUM, bins=SS_BINS, incidence_deg=[0.0, 45.0], photons=photons, shards=1,
-            batches_per_shard=32, estimator=est, absorption="analog", seed=seed,
+            **SS_MEDIUM, bins=SS_BINS, incidence_deg=[0.0, 45.0], photons=photons, shards=2,
+            batches_per_shard=16, estimator=est, absorption="analog", seed=seed,
         )  # fmt: skip
         runs[est] = simulate(spec)
     return runs

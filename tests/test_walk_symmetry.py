@@ -38,7 +38,7 @@ def _run(walk_spec, est: str, incidence: float, n_phi: int, seed: int):
     photons, n_theta = LAYOUT[est]
     spec = walk_spec(
         **MEDIUM, n_r=4, max_mm=4.0, spacing="linear", n_theta=n_theta, n_cos=1, n_phi=n_phi,
-        incidence_deg=[incidence], photons=photons, shards=1, batches_per_shard=32, estimator=est,
+        incidence_deg=[incidence], photons=photons, shards=2, batches_per_shard=16, estimator=est,
         absorption="analog", seed=seed,
     )  # fmt: skip
     return simulate(spec)
