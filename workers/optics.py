@@ -52,7 +52,7 @@ def hg_pdf(cos_theta: torch.Tensor, g: torch.Tensor | float) -> torch.Tensor:
     return INV_4PI * (1.0 - g * g) / (denom * torch.sqrt(denom))
 
 
-def sample_hg(u: torch.Tensor, g: torch.Tensor | float) -> torch.Tensor:
+def sample_hg(u: torch.Tensor, g: torch.Tensor | float, branch: str = "mixed") -> torch.Tensor:
     """cos(theta) distributed by Henyey-Greenstein, from u uniform in [0, 1].
 
     Inverting the CDF gives, for a = |g| > 0,
@@ -64,8 +64,12 @@ def sample_hg(u: torch.Tensor, g: torch.Tensor | float) -> torch.Tensor:
     is used instead: no division by g, exactly t (isotropic) at g = 0, and no cancellation for
     small |g| (it does cancel near t = -1 when g -> 1, hence the two branches).
     (The seed slides print the first form with -1/|2g|: a sign typo, wrong for g > 0.)
+    branch = "large" or "small" promises every |g| is >= 0.1 or < 0.1, so only that expression is
+    evaluated (the walk knows this from its media); "mixed" selects per element.
     """
     g = torch.as_tensor(g, dtype=u.dtype)
+    if branch == "small":
+        return _hg_small(u, g)
     a = torch.abs(g)
     # Mirror negative g onto positive: cos(g, u) = -cos(|g|, 1 - u).
     v = torch.where(g < 0, 1.0 - u, u)
@@ -75,11 +79,18 @@ def sample_hg(u: torch.Tensor, g: torch.Tensor | float) -> torch.Tensor:
     s = one_minus_a * (1.0 + a_safe) / (one_minus_a + 2.0 * a_safe * v)
     cos_large = (1.0 + a_safe * a_safe - s * s) / (2.0 * a_safe)
     cos_large = torch.where(g < 0, -cos_large, cos_large)
+    if branch == "large":
+        return torch.clamp(cos_large, -1.0, 1.0)
+    cos = torch.where(a >= 0.1, cos_large, _hg_small(u, g))
+    # Rounding can leave |cos| a few ulp above 1; it must stay a cosine.
+    return torch.clamp(cos, -1.0, 1.0)
+
+
+def _hg_small(u: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The expanded inversion of :func:`sample_hg` (accurate for |g| < 0.1), clamped to [-1, 1]."""
     t = 2.0 * u - 1.0
     d = 1.0 + g * t
-    cos_small = (t + 0.5 * g * (3.0 + t * t + 2.0 * g * t + g * g * (t * t - 1.0))) / (d * d)
-    cos = torch.where(a >= 0.1, cos_large, cos_small)
-    # Rounding can leave |cos| a few ulp above 1; it must stay a cosine.
+    cos = (t + 0.5 * g * (3.0 + t * t + 2.0 * g * t + g * g * (t * t - 1.0))) / (d * d)
     return torch.clamp(cos, -1.0, 1.0)
 
 
@@ -97,6 +108,9 @@ def fresnel_dielectric(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.
     leaving it, 1/eta (Born and Wolf, Principles of Optics, sec. 1.5; pbrt-v4 FrDielectric).
     """
     cos_i = torch.clamp(cos_i, 0.0, 1.0)
+    if isinstance(eta, (int, float)) and eta == 1.0:
+        # No interface (a constant known when the walk is compiled): nothing reflects.
+        return torch.zeros_like(cos_i)
     cos2_t = 1.0 - (1.0 - cos_i * cos_i) / (eta * eta)
     # eta = 1 (no interface): cos_t = cos_i exactly, so Fr = 0 even at grazing incidence, where
     # 1 - cos_i^2 rounds to 1 and the line above would report total internal reflection.
@@ -106,8 +120,9 @@ def fresnel_dielectric(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.
     r_s = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
     r_p = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
     fr = 0.5 * (r_s * r_s + r_p * r_p)
-    # cos_i = 0 with eta = 1 gives 0/0 above; there is no interface, nothing reflects.
-    fr = torch.where(torch.isnan(fr), torch.zeros_like(fr), fr)
+    if not isinstance(eta, (int, float)):
+        # cos_i = 0 with a tensor eta = 1 gives 0/0 above; no interface, nothing reflects.
+        fr = torch.where(torch.isnan(fr), torch.zeros_like(fr), fr)
     return torch.where(tir, torch.ones_like(fr), fr)
 
 

@@ -120,7 +120,11 @@ class _Runner:
         self.chunks = [[t[a : a + self.chunk] for t in tensors] for a in range(0, len(self.lanes.status), self.chunk)]
         self.active = len(self.chunks)  # chunks [0, active) hold every running lane
         self.table_tensors = self.cfgs.table.tensors()
-        self.params = WalkParams(inv_eta=1.0 / self.cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter)
+        abs_g = np.abs(self.cfgs.table.g.numpy())
+        self.params = WalkParams(
+            inv_eta=1.0 / self.cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
+            hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed",
+        )  # fmt: skip
         n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
         self.step = step_function(self.params, n_steps, self.connect, self.compiled)
         self.refill_fn = refill_function(self.compiled)

@@ -52,6 +52,7 @@ class WalkParams:
     max_scatter: int
     w_min: float = 1e-3
     survival: float = 0.1
+    hg_branch: str = "mixed"  # "large" / "small": every |g| >= 0.1 / < 0.1 (see sample_hg)
 
 
 @dataclass
@@ -156,7 +157,7 @@ def walk_step(
     truncated = coll & ~killed & (nscat_new >= p.max_scatter)
 
     # Collision: new direction (Henyey-Greenstein), on every collided lane.
-    cos_t = sample_hg(uniform_halfopen(b2), g)
+    cos_t = sample_hg(uniform_halfopen(b2), g, p.hg_branch)
     phi = uniform_halfopen(b3) * (2.0 * torch.pi)
     nx, ny, nz = scatter_direction(ux, uy, uz, cos_t, phi)
 
