@@ -78,7 +78,9 @@ class BatchAccumulator:
     def add_hist(self, estimator: str, batch: np.ndarray, flat: np.ndarray, g: np.ndarray, s: np.ndarray) -> None:
         """Add contributions g (to G) and s (to S, i.e. g / cos_o) at flat histogram indices."""
         lo, hi = int(batch.min()), int(batch.max())
-        for b in range(lo, hi + 1):  # photons run in order: a chunk spans one or two batches
+        # Usually one batch (photons run in order); otherwise only the batches present: a batch
+        # in between may already be folded and must not be reopened.
+        for b in [lo] if lo == hi else np.unique(batch).tolist():
             if lo == hi:
                 f, gw, sw = flat, g, s
             else:
