@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from tests.stats import assert_chi2, assert_z, z_threshold
-from workers.rng import philox4x32, philox4x32_scalar, stream_key, uniform_halfopen, uniform_open
+from workers.rng import philox4x32, philox4x32_scalar, stream_key, to_i32, to_u32, uniform_halfopen, uniform_open
 
 M32 = 0xFFFFFFFF
 
@@ -68,15 +68,34 @@ def test_tensor_known_answers_eager():
     assert all(w.dtype == torch.int64 for w in out)
 
 
-def test_tensor_known_answers_compiled():
-    """The int64 wrap-around in _mulhilo must survive inductor code generation."""
+@pytest.mark.parametrize("n_rep", [11, 256])
+def test_tensor_known_answers_compiled(n_rep):
+    """The int32 wrap-around of _mulhilo must survive inductor code generation, both in a scalar
+    loop (33 elements) and in the vectorized one (768)."""
     compiled = torch.compile(philox4x32, dynamic=False, fullgraph=True)
     counters, keys, expected = zip(*KAT)
-    # Repeat the vectors so the compiled kernel runs a real loop, not a 3-element special case.
-    cols = _tensors(list(counters) * 11, list(keys) * 11)
+    cols = [to_i32(c) for c in _tensors(list(counters) * n_rep, list(keys) * n_rep)]
     out = compiled(*cols)
-    got = list(zip(*(w.tolist() for w in out)))
-    assert got == list(expected) * 11
+    assert all(w.dtype == torch.int32 for w in out)
+    got = list(zip(*(to_u32(w).tolist() for w in out)))
+    assert got == list(expected) * n_rep
+
+
+def test_compiled_int64_words_are_refused():
+    """int64 words inside a compiled graph could lose the 32-bit wrap: refused with a clear error."""
+    compiled = torch.compile(philox4x32, dynamic=False, fullgraph=True)
+    with pytest.raises(Exception, match="int32 words"):
+        compiled(*_tensors([KAT[0][0]] * 8, [KAT[0][1]] * 8))
+
+
+def test_int32_and_int64_forms_agree():
+    rng = np.random.default_rng(5)
+    words = torch.from_numpy(rng.integers(0, 2**32, size=(6, 1000), dtype=np.uint64).astype(np.int64))
+    wide = philox4x32(*words)
+    narrow = philox4x32(*(to_i32(w) for w in words))
+    for a, b in zip(wide, narrow):
+        assert b.dtype == torch.int32
+        assert torch.equal(a, to_u32(b))
 
 
 def test_tensor_known_answers_broadcast_key():
@@ -267,3 +286,10 @@ def test_stream_key_differs_between_seeds_and_configs():
     assert len(set(keys.values())) == len(keys)
     # The seed and the configuration must not run together: (1, "2|x") is not (12, "|x").
     assert stream_key(1, "2") != stream_key(12, "")
+
+
+def test_uniform_mappings_agree_on_int32_bit_patterns():
+    """The walk passes int32 bit patterns (negative for words >= 2**31): same floats as int64."""
+    x = torch.tensor([0, 1, 0x7FFFFFFF, 0x80000000, 0x80000100, 0xFFFFFF00, M32], dtype=torch.int64)
+    assert torch.equal(uniform_open(to_i32(x)), uniform_open(x))
+    assert torch.equal(uniform_halfopen(to_i32(x)), uniform_halfopen(x))

@@ -36,9 +36,6 @@ from .rng import philox4x32, uniform_halfopen
 
 __all__ = ["ConnectionGeometry", "connect_uniform", "connect_phase", "connection_function"]
 
-_MASK32 = 0xFFFFFFFF
-
-
 @dataclass(frozen=True)
 class ConnectionGeometry:
     """Bin edges in optical units per configuration, as tensors for the kernels.
@@ -66,11 +63,12 @@ def _direction_bin(xo, yo, dx, dy, cos_in, geo: ConnectionGeometry):
     return cos_o, idx
 
 
-def connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, photon, draw, k0, k1, geo: ConnectionGeometry):
+def connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, geo: ConnectionGeometry):
     """Uniform-technique samples of every spatial bin for a chunk of V vertices.
 
     Vertex tensors have shape [V] (position, incoming direction, weight arriving, per-vertex
-    albedo, g, configuration, photon, draw index, Philox key).  Returns (G, S, spatial, direction)
+    albedo, g, configuration; Philox counter words c_lo, c_hi (the photon index) and draw index, and
+    key words k0, k1, all int32 bit patterns as in the walk).  Returns (G, S, spatial, direction)
     of shape [V, n_r * n_theta]: the MIS-weighted contribution to G, G / cos_o, the spatial bin
     index (r * n_theta + theta) and the direction bin index.
     """
@@ -78,8 +76,8 @@ def connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, photon, draw, k0,
     n_bins = n_r * n_t
     n_pairs = (n_bins + 1) // 2
     # Two bins per Philox block: (u_r, u_theta) for bin 2j from words 0, 1 and for 2j+1 from 2, 3.
-    c3 = torch.arange(n_pairs, dtype=torch.int64) + PURPOSE_CONNECT
-    b = philox4x32((photon & _MASK32)[:, None], (photon >> 32)[:, None], draw[:, None], c3[None, :], k0[:, None], k1[:, None])
+    c3 = torch.arange(n_pairs, dtype=torch.int32) + PURPOSE_CONNECT
+    b = philox4x32(c_lo[:, None], c_hi[:, None], draw[:, None], c3[None, :], k0[:, None], k1[:, None])
     u_r = torch.stack((b[0], b[2]), dim=-1).reshape(-1, 2 * n_pairs)[:, :n_bins]
     u_t = torch.stack((b[1], b[3]), dim=-1).reshape(-1, 2 * n_pairs)[:, :n_bins]
     u_r, u_t = uniform_halfopen(u_r), uniform_halfopen(u_t)
@@ -143,9 +141,8 @@ def connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo: Co
     return G, S, spatial, direction
 
 
-
-def _connect_both(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, photon, draw, k0, k1, geo: ConnectionGeometry):
-    uniform = connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, photon, draw, k0, k1, geo)
+def _connect_both(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, geo: ConnectionGeometry):
+    uniform = connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, geo)
     phase = connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo)
     return uniform, phase
 

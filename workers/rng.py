@@ -14,8 +14,11 @@ Philox-4x32-10 is the generator of Salmon, Moraes, Dror and Shaw, "Parallel rand
 as 1, 2, 3", SC'11, with the Random123 round constants; :func:`philox4x32` is checked against the
 Random123 known-answer vectors in the tests.
 
-Values are carried in int64 tensors holding unsigned 32-bit values (torch has no full unsigned
-32-bit arithmetic on the CPU).
+torch has no unsigned 32-bit arithmetic on the CPU, so words are carried as int32 *bit patterns*
+(a word >= 2**31 reads as negative) and every product is formed in 32-bit lanes: AVX2 has native
+32-bit vector multiplies but no 64-bit one (ATen emulates int64 multiplication there one element at
+a time, which made an int64 generator the slowest part of the compiled walk).  :func:`to_i32` and
+:func:`to_u32` convert from and to int64 tensors holding the unsigned values.
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ __all__ = [
     "PHILOX_W1",
     "philox4x32",
     "philox4x32_scalar",
+    "to_i32",
+    "to_u32",
     "stream_key",
     "uniform_open",
     "uniform_halfopen",
@@ -44,39 +49,81 @@ _MASK32 = 0xFFFFFFFF
 _ROUNDS = 10
 
 
-def _mulhilo(a: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(hi, lo) 32-bit halves of the 64-bit product a * m, for 0 <= a, m < 2**32.
+def _signed(v: int) -> int:
+    """The int32 reading of the 32-bit word v."""
+    return v - (1 << 32) if v >= 1 << 31 else v
 
-    The product is below 2**64 but may exceed 2**63: int64 multiplication then wraps modulo 2**64
-    (two's complement, as torch's CPU kernels and the compiled code do on every supported
-    platform), leaving the bit pattern of the unsigned product; the masks recover the halves.
-    The known-answer tests run this in eager and compiled mode, so a platform where the wrap
-    assumption failed would be caught.  (Splitting m into 16-bit halves avoids the wrap but made
-    the compiled generator about 30 % slower here.)
+
+def to_i32(x: torch.Tensor) -> torch.Tensor:
+    """int32 bit patterns of int64 values in [0, 2**32) (no overflow anywhere: exact)."""
+    return (x - ((x & 0x80000000) << 1)).to(torch.int32)
+
+
+def to_u32(x: torch.Tensor) -> torch.Tensor:
+    """int64 unsigned values in [0, 2**32) of int32 bit patterns."""
+    return x.to(torch.int64) & _MASK32
+
+
+def _hi16(x: torch.Tensor) -> torch.Tensor:
+    """The top 16 bits of a 32-bit word as a value in [0, 2**16) (>> on int32 is arithmetic)."""
+    return (x >> 16) & 0xFFFF
+
+
+def _mulhilo(a: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(hi, lo) words of the 64-bit product a * m, a an int32 bit pattern, m < 2**32 a constant.
+
+    lo is the wrapping 32-bit product.  hi is the unsigned high word formed from 16-bit halves
+    a = ah 2**16 + al, m = mh 2**16 + ml (Hacker's Delight, 8-2, mulhu):
+
+        t  = ah ml + (al ml >> 16)             < 2**32
+        w1 = (t mod 2**16) + al mh             < 2**32
+        hi = ah mh + (t >> 16) + (w1 >> 16)
+
+    Every partial value is below 2**32, so its int32 bit pattern (wrapping where it passes 2**31)
+    is exact and the masked shifts read it as unsigned.  Wrapping int32 arithmetic is what the
+    vector instructions do; the known-answer tests run this eager and compiled.
     """
-    p = a * m
-    return (p >> 32) & _MASK32, p & _MASK32
+    ml, mh = m & 0xFFFF, m >> 16
+    al = a & 0xFFFF
+    ah = _hi16(a)
+    t = ah * ml + _hi16(al * ml)
+    w1 = (t & 0xFFFF) + al * mh
+    hi = ah * mh + _hi16(t) + _hi16(w1)
+    return hi, a * _signed(m)
 
 
 def philox4x32(
     c0: torch.Tensor, c1: torch.Tensor, c2: torch.Tensor, c3: torch.Tensor, k0: torch.Tensor, k1: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Philox-4x32-10 block: four 32-bit outputs (as int64 in [0, 2**32)) per counter.
+    """Philox-4x32-10 block: four 32-bit outputs per counter.
 
-    All inputs are int64 tensors (or broadcastable) holding values in [0, 2**32).  One round is
+    Inputs are broadcastable tensors, either all int32 (bit patterns; the outputs are int32 bit
+    patterns too: the walk's form, and the only one allowed inside torch.compile) or int64
+    holding values in [0, 2**32) (outputs likewise; eager only).
+    One round is
 
         (hi0, lo0) = M0 * c0 ;  (hi1, lo1) = M1 * c2
         c = (hi1 ^ c1 ^ k0, lo1, hi0 ^ c3 ^ k1, lo0)
 
     and the key is bumped by the Weyl constants (W0, W1) between rounds.
     """
+    wide = c0.dtype == torch.int64
+    if wide and torch.compiler.is_compiling():
+        # Inductor may carry the int32 products of a value cast from int64 in 64-bit registers,
+        # losing the wrap the high word relies on: compiled code must pass int32 words.
+        raise TypeError("philox4x32: compiled code must pass int32 words (see to_i32)")
+    if wide:
+        c0, c1, c2, c3, k0, k1 = (to_i32(torch.as_tensor(v)) for v in (c0, c1, c2, c3, k0, k1))
+    w0, w1 = _signed(PHILOX_W0), _signed(PHILOX_W1)
     for r in range(_ROUNDS):
         if r:
-            k0 = (k0 + PHILOX_W0) & _MASK32
-            k1 = (k1 + PHILOX_W1) & _MASK32
+            k0 = k0 + w0
+            k1 = k1 + w1
         hi0, lo0 = _mulhilo(c0, PHILOX_M0)
         hi1, lo1 = _mulhilo(c2, PHILOX_M1)
         c0, c1, c2, c3 = hi1 ^ c1 ^ k0, lo1, hi0 ^ c3 ^ k1, lo0
+    if wide:
+        return to_u32(c0), to_u32(c1), to_u32(c2), to_u32(c3)
     return c0, c1, c2, c3
 
 
@@ -95,18 +142,18 @@ def philox4x32_scalar(counter: tuple[int, int, int, int], key: tuple[int, int]) 
 
 
 def uniform_open(x: torch.Tensor) -> torch.Tensor:
-    """Map 32 random bits to float32 in the open interval (0, 1): ((x >> 9) + 0.5) / 2**23.
+    """Map 32 random bits (int32 bit pattern or int64 value) to float32 in the open interval (0, 1): ((x >> 9) + 0.5) / 2**23.
 
     A 23-bit grid offset by half a step: every value, up to 1 - 2**-24, is exact in float32, so
     the result is never 0 or 1 and -log(u), log(1 - u) are finite.  (A 24-bit grid + 0.5 would
     need 25 significant bits at the top and round up to exactly 1.)
     """
-    return ((x >> 9).to(torch.float32) + 0.5) * (1.0 / 8388608.0)
+    return (((x >> 9) & 0x7FFFFF).to(torch.float32) + 0.5) * (1.0 / 8388608.0)
 
 
 def uniform_halfopen(x: torch.Tensor) -> torch.Tensor:
     """Map 32 random bits to float32 in [0, 1): (x >> 8) / 2**24 (exact in float32)."""
-    return (x >> 8).to(torch.float32) * (1.0 / 16777216.0)
+    return ((x >> 8) & 0xFFFFFF).to(torch.float32) * (1.0 / 16777216.0)
 
 
 def stream_key(seed: int, config_fingerprint: str) -> tuple[int, int]:

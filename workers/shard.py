@@ -22,7 +22,7 @@ from schema import SimulationSpec
 from .binning import BinLayout, outgoing_azimuth, wrap_angle
 from .connections import ConnectionGeometry, connection_function
 from .optics import fresnel_dielectric, incident_refracted_direction, refracted_cos
-from .rng import stream_key
+from .rng import stream_key, to_i32
 from .tally import BatchAccumulator, ShardTally
 from .walk import ABSORBED, EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, WalkParams, compile_enabled, refill_function, step_function
 
@@ -80,7 +80,7 @@ def build_configs(spec: SimulationSpec) -> Configs:
     table = ConfigTable(
         albedo=f32(cols[1]), g=f32(cols[2]), w0=f32([1.0 - r for r in cols[3]]),
         ux0=f32(cols[4]), uz0=f32(cols[5]),
-        k0=torch.tensor(cols[6], dtype=torch.int64), k1=torch.tensor(cols[7], dtype=torch.int64),
+        k0=to_i32(torch.tensor(cols[6], dtype=torch.int64)), k1=to_i32(torch.tensor(cols[7], dtype=torch.int64)),
     )  # fmt: skip
     return Configs(
         incidence_deg=list(spec.incidence_deg), channel_names=[c.name for c in channels],
@@ -257,8 +257,9 @@ class _Runner:
         px, py, pz, ux, uy, uz, vx, vy, vz, w, cfg, photon, draw, comp = cols
         T = self.cfgs.table
         albedo, g, k0, k1 = T.albedo[cfg], T.g[cfg], T.k0[cfg], T.k1[cfg]
+        c_lo, c_hi = to_i32(photon & 0xFFFFFFFF), to_i32(photon >> 32)
         (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.connect_fn(
-            px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, photon, draw, k0, k1, self.geo
+            px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, self.geo
         )
         cfg, comp, photon = cfg[:n], comp[:n], photon[:n]
         batch = self.acc.batch_of(photon.numpy())

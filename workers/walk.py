@@ -22,7 +22,7 @@ import torch
 
 from .conventions import PURPOSE_WALK
 from .optics import fresnel_dielectric, sample_exponential, sample_hg, scatter_direction
-from .rng import philox4x32, uniform_halfopen, uniform_open
+from .rng import philox4x32, to_i32, uniform_halfopen, uniform_open
 
 __all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function", "refill_function", "compile_enabled"]
 
@@ -68,24 +68,27 @@ class Lanes:
     w: torch.Tensor  # float32 weight (power) carried
     absorbed: torch.Tensor  # float32 weight deposited by absorption so far
     nscat: torch.Tensor  # int32 scattering events so far
-    step: torch.Tensor  # int64 random draw index (steps taken)
+    step: torch.Tensor  # int32 random draw index (steps taken)
     photon: torch.Tensor  # int64 photon index within its configuration
     cfg: torch.Tensor  # int64 configuration index (incidence angle x channel)
     status: torch.Tensor  # int8 status code
     albedo: torch.Tensor  # float32 per-lane copy of the configuration's albedo
     g: torch.Tensor  # float32 per-lane copy of the configuration's HG g
-    k0: torch.Tensor  # int64 Philox key words of the configuration
+    k0: torch.Tensor  # int32 Philox key words of the configuration (bit patterns, workers.rng)
     k1: torch.Tensor
+    c_lo: torch.Tensor  # int32 Philox counter words 0 and 1: the photon index, low and high half
+    c_hi: torch.Tensor
 
     @classmethod
     def empty(cls, n: int) -> "Lanes":
         f32 = lambda: torch.zeros(n, dtype=torch.float32)  # noqa: E731
         i64 = lambda: torch.zeros(n, dtype=torch.int64)  # noqa: E731
+        i32 = lambda: torch.zeros(n, dtype=torch.int32)  # noqa: E731
         return cls(
             x=f32(), y=f32(), z=f32(), ux=f32(), uy=f32(), uz=f32(), w=f32(), absorbed=f32(),
-            nscat=torch.zeros(n, dtype=torch.int32), step=i64(), photon=i64(), cfg=i64(),
+            nscat=i32(), step=i32(), photon=i64(), cfg=i64(),
             status=torch.full((n,), EMPTY, dtype=torch.int8),
-            albedo=f32(), g=f32(), k0=i64(), k1=i64(),
+            albedo=f32(), g=f32(), k0=i32(), k1=i32(), c_lo=i32(), c_hi=i32(),
         )  # fmt: skip
 
     def tensors(self) -> list[torch.Tensor]:
@@ -101,7 +104,7 @@ class ConfigTable:
     w0: torch.Tensor  # float32, 1 - R_spec
     ux0: torch.Tensor  # float32, refracted incident direction
     uz0: torch.Tensor
-    k0: torch.Tensor  # int64
+    k0: torch.Tensor  # int32 bit patterns
     k1: torch.Tensor
 
     def tensors(self) -> list[torch.Tensor]:
@@ -110,7 +113,7 @@ class ConfigTable:
 
 
 def walk_step(
-    x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, status, albedo, g, k0, k1, *, p: WalkParams
+    x, y, z, ux, uy, uz, w, absorbed, nscat, step, c_lo, c_hi, status, albedo, g, k0, k1, *, p: WalkParams
 ):  # fmt: skip
     """Advance every RUNNING lane by one interaction; returns the new state and vertex data.
 
@@ -129,7 +132,7 @@ def walk_step(
     the phase-function sample of the connection's multiple importance sampling.
     """
     running = status == RUNNING
-    b0, b1, b2, b3 = philox4x32(photon & _MASK32, photon >> 32, step, torch.zeros_like(step) + PURPOSE_WALK, k0, k1)
+    b0, b1, b2, b3 = philox4x32(c_lo, c_hi, step, torch.zeros_like(step) + PURPOSE_WALK, k0, k1)
     s = sample_exponential(uniform_open(b0))
     u_dec = uniform_halfopen(b1)
     z_new = z + s * uz
@@ -172,7 +175,7 @@ def walk_step(
         EXITED,
         torch.where(killed, ABSORBED, torch.where(truncated, TRUNCATED, status.to(torch.int32))),
     ).to(torch.int8)
-    step_new = step + running.to(torch.int64)
+    step_new = step + running.to(torch.int32)
     state = (x_new, y_new, z_new, ux_new, uy_new, uz_new, w_new, absorbed_new, nscat_new, step_new, status_new)
     return state, (coll, ux, uy, uz, w)
 
@@ -184,12 +187,12 @@ def _step_inplace(lanes_tensors: list[torch.Tensor], p: WalkParams, n_steps: int
     EXITED, ABSORBED or TRUNCATED, waiting for harvest); vertex = the last step's vertex data
     (see :func:`walk_step`) if want_vertices, else None.
     """
-    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1) = lanes_tensors
+    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1, c_lo, c_hi) = lanes_tensors
     vertex = None
     cur = (x, y, z, ux, uy, uz, w, absorbed, nscat, step, status)
     for _ in range(n_steps):
         cx, cy, cz, cux, cuy, cuz, cw, cab, cns, cst, cstat = cur
-        cur, vertex = walk_step(cx, cy, cz, cux, cuy, cuz, cw, cab, cns, cst, photon, cstat, albedo, g, k0, k1, p=p)
+        cur, vertex = walk_step(cx, cy, cz, cux, cuy, cuz, cw, cab, cns, cst, c_lo, c_hi, cstat, albedo, g, k0, k1, p=p)
     if want_vertices:
         # The arrival direction and weight are the old state, overwritten just below: copy them.
         vertex = tuple(v.clone() for v in vertex)
@@ -209,7 +212,7 @@ def _refill_inplace(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor]
     become EMPTY.  A new photon sits at the origin travelling along the refracted incident
     direction of its configuration with weight 1 - R_spec.
     """
-    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1) = lanes_tensors
+    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1, c_lo, c_hi) = lanes_tensors
     t_albedo, t_g, t_w0, t_ux0, t_uz0, t_k0, t_k1 = table
     start, nxt, n_launch, n_cfg = launch[0], launch[1], launch[2], launch[3]
     free = status != RUNNING
@@ -223,7 +226,11 @@ def _refill_inplace(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor]
         dst.copy_(torch.where(new, val, dst))
     nscat.copy_(torch.where(new, 0, nscat))
     step.copy_(torch.where(new, 0, step))
-    photon.copy_(torch.where(new, start + q // n_cfg, photon))
+    pid = start + q // n_cfg
+    photon.copy_(torch.where(new, pid, photon))
+    # Exact casts: to_i32 maps [0, 2**32) onto the int32 range before converting.
+    c_lo.copy_(torch.where(new, to_i32(pid & _MASK32), c_lo))
+    c_hi.copy_(torch.where(new, to_i32(pid >> 32), c_hi))
     cfg.copy_(torch.where(new, c, cfg))
     k0.copy_(torch.where(new, t_k0[c], k0))
     k1.copy_(torch.where(new, t_k1[c], k1))
