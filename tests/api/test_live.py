@@ -11,34 +11,25 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 import pytest
 
 from tests.api.conftest import TINY_SPEC, tiny_spec
+from tests.waiting import wait_for
 
 pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[2]
 TOKEN = "live-test-token"
+POLL = 0.2  # seconds between polls of the server (each one an HTTP request)
 
 
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def wait_for(predicate, timeout: float, what: str, poll: float = 0.2):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 @pytest.fixture
@@ -66,7 +57,7 @@ def live(tmp_path):
             return False
 
     try:
-        wait_for(up, 30, "bssrdf serve to be ready")
+        wait_for(up, 30, "bssrdf serve to be ready", poll=POLL)
         yield base, env, db, storage
     finally:
         server.send_signal(signal.SIGTERM)
@@ -105,7 +96,7 @@ def test_a_job_through_the_http_api_and_the_client_commands(live, tmp_path):
     worker = start_worker(env, db, storage, tmp_path / "worker-1.log")
     try:
         job = wait_for(lambda: (j := api.get(f"/v1/jobs/{job_id}").json())["state"] in ("succeeded", "failed") and j,
-                       60, "the job to end")
+                       60, "the job to end", poll=POLL)
         assert worker.wait(30) == 0
     finally:
         if worker.poll() is None:
@@ -134,7 +125,7 @@ def test_a_job_through_the_http_api_and_the_client_commands(live, tmp_path):
     )
     try:
         wait_for(lambda: len(api.get("/v1/jobs").json()["items"]) == 2 or submit.poll() is not None, 30,
-                 "the CLI submission")
+                 "the CLI submission", poll=POLL)
         worker = start_worker(env, db, storage, tmp_path / "worker-2.log")
         out, err = submit.communicate(timeout=75)
         assert worker.wait(30) == 0
