@@ -4,23 +4,21 @@ For the benchmark media of the engine issue, at normal incidence, each estimator
 M1: sigma_t 10/mm, albedo 0.99, g 0.9, eta 1.3 (about 380 steps per photon);
 M2: sigma_t 1/mm, albedo 0.9, g 0, eta 1.0 (about 27.5 steps per photon).
 Prints photons/s, interaction steps (free-path samples) per second per core and per CPU-second,
-the thread count and the memory peak.  --threads N runs N shards at once (one core each), which is
-how `bssrdf simulate` and the workers use cores.  A warm-up run first keeps compile time out.
+the thread count and the memory peak (per worker process).  --threads N runs N shards at once in N
+worker processes (one core each), which is how `bssrdf simulate` and the workers use cores.  A
+warm-up run in every process first keeps compile time out.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import resource
 import sys
 import time
 
-
-
 from schema import SimulationSpec
 
-from .simulate import run_shards
+from .pool import ShardPool
 
 __all__ = ["MEDIA", "bench_one", "add_parser", "main"]
 
@@ -39,16 +37,22 @@ def _spec(medium: str, estimator: str, photons: int, shards: int = 1) -> Simulat
 
 
 def bench_one(medium: str, estimator: str, photons: int, threads: int = 1) -> dict:
-    """Run `threads` shards of `photons` photons each concurrently, after a small warm-up.
+    """Run `threads` shards of `photons` photons each concurrently, one worker process per shard
+    (:class:`workers.pool.ShardPool`, as `bssrdf simulate` does), after every process has warmed up
+    (compiled) on a small run.
 
-    Figures from wall time and process CPU time; per core = per thread (each shard runs on one
-    torch thread, see workers.simulate.run_shards).
+    Rates per core divide by `threads`; CPU time is the shards' own (thread CPU time in their
+    processes), so steps per CPU-second show how much of each core the walk gets.
     """
-    run_shards(_spec(medium, estimator, max(8, photons // 50), threads), range(threads), threads=threads)  # compile
+    warm = _spec(medium, estimator, max(8, photons // 50), 1)
     spec = _spec(medium, estimator, photons * threads, threads)
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    tallies = run_shards(spec, range(threads), threads=threads)
-    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
+    with ShardPool(threads, warm_spec=warm) as pool:
+        pool.run(_spec(medium, estimator, max(8, photons // 20) * threads, threads), range(threads))  # the pool's first run pays set-up costs
+        wall0 = time.perf_counter()
+        tallies = pool.run(spec, range(threads))
+        wall = time.perf_counter() - wall0
+    cpu = sum(t.info["cpu_s"] for t in tallies)
+    peak = max(t.info.get("maxrss_mib", 0.0) for t in tallies)
     steps = sum(t.info["photon_steps"] for t in tallies)
     n = photons * threads
     return {
@@ -63,6 +67,7 @@ def bench_one(medium: str, estimator: str, photons: int, threads: int = 1) -> di
         "cpu_s": cpu,
         "threads": threads,
         "engine": tallies[0].info["engine"],
+        "memory_peak_mib": peak,
     }
 
 
@@ -76,7 +81,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--media", default="M1,M2", help="comma-separated subset of M1,M2")
     p.add_argument("--estimators", default="exits,connections", help="comma-separated subset of exits,connections")
     p.add_argument("--photons", type=int, help="photons per run (default: per medium and estimator)")
-    p.add_argument("--threads", type=int, default=1, help="shards run concurrently, one core each (default 1)")
+    p.add_argument("--threads", type=int, default=1, help="shards run concurrently, one worker process and core each (default 1)")
     p.add_argument("--json", action="store_true", help="print one JSON object keyed by medium and estimator")
 
 
@@ -91,14 +96,11 @@ def main(args: argparse.Namespace) -> int:
                 print(
                     f"{medium} {est:<12} {r['photons_per_s']:>10.4g} photons/s  {r['steps_per_s']:>9.3g} steps/s  "
                     f"{r['steps_per_s_per_core']:>9.3g} steps/s per core  {r['steps_per_cpu_s']:>9.3g} steps/CPU-s  ({r['steps_per_photon']:.1f} steps/photon, "
-                    f"{r['threads']} threads, {r['engine']})",
+                    f"{r['threads']} threads, {r['engine']}, peak {r['memory_peak_mib']:.0f} MiB per process)",
                     flush=True,
                 )
-    peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if args.json:
-        print(json.dumps(dict(out, memory_peak_mib=peak_mib), sort_keys=True))
-    else:
-        print(f"memory peak {peak_mib:.0f} MiB")
+        print(json.dumps(out, sort_keys=True))
     return 0
 
 

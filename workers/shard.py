@@ -28,10 +28,10 @@ from .walk import ABSORBED, EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lane
 
 __all__ = ["run_shard", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
 
-CHUNK = 1 << 15  # lanes per call of the compiled step (one static shape for every shard)
+CHUNK = 1 << 14  # lanes per call of the compiled step (one static shape for every shard); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
 CONNECT_CHUNK = 1 << 11  # lanes per call with connections: their kernel dominates, few photons run
-MAX_CHUNKS = 2  # 2^16 lanes in all: about what fits the cache (research/performance.md)
+MAX_CHUNKS = 4  # 2^16 lanes in all: enough photons in flight to keep every chunk full
 PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
 EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
@@ -273,26 +273,29 @@ class _Runner:
     # -- main loop ------------------------------------------------------------------------------
     def run(self) -> ShardTally:
         t0 = time.perf_counter()
+        with torch.no_grad():  # also around the first refill: grad mode is part of a compiled graph's key
+            return self._run(t0)
+
+    def _run(self, t0: float) -> ShardTally:
         running = self.refill()
         n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
         # Harvesting costs a pass over the lanes plus Python work: wait until an eighth of the
         # lanes has finished (or none runs) so the cost is spread over many photons.
         harvest_at = max(1, len(self.lanes.status) // 8)
-        with torch.no_grad():
-            while running > 0:
-                running = finished = 0
-                for k in range(self.active):
-                    counts, vertex = self.step(self.chunks[k])
-                    running, finished = running + int(counts[0]), finished + int(counts[1])
-                    if self.connect:
-                        self.collect_vertices(vertex, k * self.chunk)
-                self.steps += n_steps
-                if finished >= harvest_at or (running == 0 and finished > 0) or (
-                    finished and self.next_launch == self.n_launch and running <= (self.active - 1) * self.chunk
-                ):
-                    running = self.harvest(running)
-            self.flush_vertices(force=True)
-            self.acc.fold_ready()
+        while running > 0:
+            running = finished = 0
+            for k in range(self.active):
+                counts, vertex = self.step(self.chunks[k])
+                running, finished = running + int(counts[0]), finished + int(counts[1])
+                if self.connect:
+                    self.collect_vertices(vertex, k * self.chunk)
+            self.steps += n_steps
+            if finished >= harvest_at or (running == 0 and finished > 0) or (
+                finished and self.next_launch == self.n_launch and running <= (self.active - 1) * self.chunk
+            ):
+                running = self.harvest(running)
+        self.flush_vertices(force=True)
+        self.acc.fold_ready()
         assert self.acc.complete, "every batch must have folded once all photons finished"
         info = {
             "photons": self.n_launch, "lanes": len(self.lanes.status), "lane_steps": self.steps, "photon_steps": self.photon_steps,

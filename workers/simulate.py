@@ -1,7 +1,8 @@
 """`bssrdf simulate`: measure a BSSRDF table in this process and write its tables.
 
-Runs every shard of the spec in order (torch uses all cores inside each step), merges them and
-writes radial.parquet, bins.parquet, summary.parquet and summary.json into --out.
+Runs the shards of the spec on this machine without the job service (one worker process per
+core, see :mod:`workers.pool`), merges them and writes radial.parquet, bins.parquet,
+summary.parquet and summary.json into --out.
 """
 
 from __future__ import annotations
@@ -20,25 +21,30 @@ from schema import SpecError, load_spec
 
 from .merge import merge
 from .output import summary, write_tables
+from .pool import ShardPool, default_workers
 from .shard import run_shard
 
 __all__ = ["add_parser", "main", "simulate", "run_shards", "format_summary"]
 
 
-def simulate(spec, *, progress=None, threads: int | None = None):
+def simulate(spec, *, progress=None, threads: int | None = None, processes: int | None = None):
     """Run every shard of `spec` and merge them; returns the Result.
 
-    Shards run concurrently on `threads` threads (default: one per core), each with one torch
-    intra-op thread: shards are independent, so this scales with cores without any per-step
-    synchronisation (the compiled step releases the GIL).  The merge sums in shard order, so the
-    result is bitwise the same for any thread count.
+    processes > 1 runs the shards on that many worker processes (:class:`workers.pool.ShardPool`,
+    what the command line does); otherwise they run in this process on `threads` threads (default:
+    one per core), each with one torch intra-op thread.  The merge sums in shard order, so the
+    result is bitwise the same for any number of threads or processes.
     """
-    return merge(spec, run_shards(spec, range(spec.shards), progress=progress, threads=threads))
+    return merge(spec, run_shards(spec, range(spec.shards), progress=progress, threads=threads, processes=processes))
 
 
-def run_shards(spec, indices, *, progress=None, threads: int | None = None) -> list:
-    """run_shard for each index, `threads` at a time (one torch thread each); tallies in order."""
+def run_shards(spec, indices, *, progress=None, threads: int | None = None, processes: int | None = None) -> list:
+    """run_shard for each index, on `processes` worker processes or `threads` threads of this
+    process (one torch thread each); the tallies in the order of indices."""
     indices = list(indices)
+    if processes is not None and min(processes, len(indices)) > 1:
+        with ShardPool(min(processes, len(indices))) as pool:
+            return pool.run(spec, indices, progress)
     threads = max(1, min(threads or os.cpu_count() or 1, len(indices)))
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -88,8 +94,9 @@ class _Progress:
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "simulate",
-        help="measure a BSSRDF table in this process",
-        description="Run the photon random walk for SPEC in this process (all cores), write "
+        help="measure a BSSRDF table on this machine (no job service)",
+        description="Run the photon random walk for SPEC on this machine (one process per core, no "
+        "job service or database), write "
         "radial.parquet, bins.parquet, summary.parquet and summary.json into --out, and print "
         "R_spec and the diffuse reflectance Rd (single / multiple / total, with standard errors) "
         "per incidence angle and channel.",
@@ -98,10 +105,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="out", help="output directory (created; default ./out)")
     p.add_argument("--photons", type=int, help="override the spec's photons per incidence angle and channel")
     p.add_argument("--seed", type=int, help="override the spec's seed")
-    p.add_argument("--threads", type=int, help="shards run concurrently (default: one per core)")
+    p.add_argument("--workers", type=_positive, default=default_workers(),
+                   help="shards run concurrently, each in its own process on one core (default: one "
+                   "per core, %(default)s here); 1 runs them one after another in this process")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
     p.set_defaults(func=main)
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value
 
 
 def load_with_overrides(path: str, photons: int | None, seed: int | None):
@@ -127,7 +143,7 @@ def main(args: argparse.Namespace) -> int:
     progress = _Progress(spec.photons * n_cfg, enabled=sys.stderr.isatty() and not args.no_progress)
     t0 = time.perf_counter()
     try:
-        result = simulate(spec, progress=progress, threads=args.threads)
+        result = simulate(spec, progress=progress, threads=1, processes=args.workers)
     finally:
         progress.close()
     elapsed = time.perf_counter() - t0
