@@ -26,7 +26,7 @@ from .rng import philox4x32, to_i32, uniform_halfopen, uniform_open
 
 __all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function", "refill_function", "compile_enabled"]
 
-# Lane status codes (int8).
+# Lane status codes (int32: an int8 status made inductor convert masks element by element).
 RUNNING = 0  # photon in flight
 EXITED = 1  # refracted out through the surface; x, y and u hold the crossing
 ABSORBED = 2  # killed by analog absorption or by Russian roulette
@@ -71,7 +71,7 @@ class Lanes:
     step: torch.Tensor  # int32 random draw index (steps taken)
     photon: torch.Tensor  # int64 photon index within its configuration
     cfg: torch.Tensor  # int64 configuration index (incidence angle x channel)
-    status: torch.Tensor  # int8 status code
+    status: torch.Tensor  # int32 status code
     albedo: torch.Tensor  # float32 per-lane copy of the configuration's albedo
     g: torch.Tensor  # float32 per-lane copy of the configuration's HG g
     k0: torch.Tensor  # int32 Philox key words of the configuration (bit patterns, workers.rng)
@@ -87,7 +87,7 @@ class Lanes:
         return cls(
             x=f32(), y=f32(), z=f32(), ux=f32(), uy=f32(), uz=f32(), w=f32(), absorbed=f32(),
             nscat=i32(), step=i32(), photon=i64(), cfg=i64(),
-            status=torch.full((n,), EMPTY, dtype=torch.int8),
+            status=torch.full((n,), EMPTY, dtype=torch.int32),
             albedo=f32(), g=f32(), k0=i32(), k1=i32(), c_lo=i32(), c_hi=i32(),
         )  # fmt: skip
 
@@ -173,8 +173,8 @@ def walk_step(
     status_new = torch.where(
         escape,
         EXITED,
-        torch.where(killed, ABSORBED, torch.where(truncated, TRUNCATED, status.to(torch.int32))),
-    ).to(torch.int8)
+        torch.where(killed, ABSORBED, torch.where(truncated, TRUNCATED, status)),
+    )
     step_new = step + running.to(torch.int32)
     state = (x_new, y_new, z_new, ux_new, uy_new, uz_new, w_new, absorbed_new, nscat_new, step_new, status_new)
     return state, (coll, ux, uy, uz, w)
@@ -234,7 +234,7 @@ def _refill_inplace(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor]
     cfg.copy_(torch.where(new, c, cfg))
     k0.copy_(torch.where(new, t_k0[c], k0))
     k1.copy_(torch.where(new, t_k1[c], k1))
-    status.copy_(torch.where(new, RUNNING, torch.where(free, EMPTY, status.to(torch.int32))).to(torch.int8))
+    status.copy_(torch.where(new, RUNNING, torch.where(free, EMPTY, status)))
 
 
 def compile_enabled() -> bool:
