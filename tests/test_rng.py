@@ -88,6 +88,18 @@ def test_compiled_int64_words_are_refused():
         compiled(*_tensors([KAT[0][0]] * 8, [KAT[0][1]] * 8))
 
 
+def test_int32_and_int64_rounds_agree_eager():
+    """The two implementations of the rounds (int32 lanes for compiled code, int64 eager)."""
+    from workers.rng import _philox_i32, _philox_u64
+
+    rng = np.random.default_rng(6)
+    words = torch.from_numpy(rng.integers(0, 2**32, size=(6, 5000), dtype=np.uint64).astype(np.int64))
+    words[:, :8] = M32
+    words[:, 8:16] = 0
+    for a, b in zip(_philox_u64(*words), _philox_i32(*(to_i32(w) for w in words))):
+        assert torch.equal(a, to_u32(b))
+
+
 def test_int32_and_int64_forms_agree():
     rng = np.random.default_rng(5)
     words = torch.from_numpy(rng.integers(0, 2**32, size=(6, 1000), dtype=np.uint64).astype(np.int64))
