@@ -1,4 +1,4 @@
-"""`bssrdf simulate`: measure a BSSRDF table in this process and write its tables.
+"""`bssrdf simulate`: measure a BSSRDF table without the job service and write its tables.
 
 Runs the shards of the spec on this machine without the job service (one worker process per
 core, see :mod:`workers.pool`), merges them and writes radial.parquet, bins.parquet,
