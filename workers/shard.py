@@ -35,6 +35,7 @@ MAX_CHUNKS = 4  # 2^16 lanes in all: enough photons in flight to keep every chun
 PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
 EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
+HARVEST_DIVISOR = 8  # harvest once 1/HARVEST_DIVISOR of the lanes has finished (4 and 32 ran M1 slower here)
 
 
 @dataclass(frozen=True)
@@ -281,7 +282,7 @@ class _Runner:
         n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
         # Harvesting costs a pass over the lanes plus Python work: wait until an eighth of the
         # lanes has finished (or none runs) so the cost is spread over many photons.
-        harvest_at = max(1, len(self.lanes.status) // 8)
+        harvest_at = max(1, len(self.lanes.status) // HARVEST_DIVISOR)
         while running > 0:
             running = finished = 0
             for k in range(self.active):
