@@ -70,6 +70,8 @@ class ShardPool:
 
     warm_spec, if given, is run (shard 0) by every process as it starts, so compilation is done
     before the first real shard (the benchmark uses this to keep compile time out of its figures).
+    As with any "spawn" pool, a script that creates one must guard its top level with
+    ``if __name__ == "__main__":`` (each worker imports the script's main module).
     """
 
     def __init__(self, workers: int, warm_spec: SimulationSpec | None = None):
