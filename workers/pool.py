@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
-import queue
 import resource
 import threading
 import time
@@ -114,13 +113,9 @@ class ShardPool:
             drain.join()
 
     def _drain(self, progress: Callable[[int], None], stop: threading.Event) -> None:
-        while True:
+        """Relay the workers' photon counts until stop is set and nothing is left."""
+        while not (self._queue.empty() and stop.is_set()):
             if self._queue.empty():
-                if stop.is_set():
-                    return
                 time.sleep(0.05)
-                continue
-            try:
+            else:
                 progress(self._queue.get())
-            except queue.Empty:  # pragma: no cover
-                continue

@@ -34,6 +34,7 @@ __all__ = [
     "PHILOX_W1",
     "philox4x32",
     "philox4x32_scalar",
+    "photon_words",
     "to_i32",
     "to_u32",
     "stream_key",
@@ -119,37 +120,45 @@ def philox4x32(
     # partial products, and eager cost is per operation.  Same words either way (tested).
     if not wide:
         c0, c1, c2, c3, k0, k1 = (to_u32(torch.as_tensor(v)) for v in (c0, c1, c2, c3, k0, k1))
-    out = _philox_u64(*(torch.as_tensor(v) for v in (c0, c1, c2, c3, k0, k1)))
+    out = _philox_u64(c0, c1, c2, c3, k0, k1)
     return out if wide else tuple(to_i32(w) for w in out)
 
 
-def _philox_i32(c0, c1, c2, c3, k0, k1):
-    """Philox-4x32-10 on int32 bit patterns (the compiled walk's form)."""
-    w0, w1 = _signed(PHILOX_W0), _signed(PHILOX_W1)
+def _rounds(c0, c1, c2, c3, k0, k1, mulhilo, w0: int, w1: int, mask: int | None):
+    """The ten Philox rounds with the given (hi, lo) product and key bump (masked if given)."""
     for r in range(_ROUNDS):
         if r:
-            k0 = k0 + w0
-            k1 = k1 + w1
-        hi0, lo0 = _mulhilo(c0, PHILOX_M0)
-        hi1, lo1 = _mulhilo(c2, PHILOX_M1)
+            k0, k1 = k0 + w0, k1 + w1
+            if mask is not None:
+                k0, k1 = k0 & mask, k1 & mask
+        hi0, lo0 = mulhilo(c0, PHILOX_M0)
+        hi1, lo1 = mulhilo(c2, PHILOX_M1)
         c0, c1, c2, c3 = hi1 ^ c1 ^ k0, lo1, hi0 ^ c3 ^ k1, lo0
     return c0, c1, c2, c3
 
 
-def _philox_u64(c0, c1, c2, c3, k0, k1):
-    """Philox-4x32-10 on int64 tensors holding words in [0, 2**32) (eager form).
+def _philox_i32(c0, c1, c2, c3, k0, k1):
+    """Philox-4x32-10 on int32 bit patterns (the compiled walk's form): wrapping int32 key bumps."""
+    return _rounds(c0, c1, c2, c3, k0, k1, _mulhilo, _signed(PHILOX_W0), _signed(PHILOX_W1), None)
 
-    The 64-bit product may exceed 2**63: int64 multiplication wraps modulo 2**64 in torch's CPU
-    kernels, leaving the bit pattern of the unsigned product, and the masks recover the halves.
-    """
-    for r in range(_ROUNDS):
-        if r:
-            k0 = (k0 + PHILOX_W0) & _MASK32
-            k1 = (k1 + PHILOX_W1) & _MASK32
-        p0 = c0 * PHILOX_M0
-        p1 = c2 * PHILOX_M1
-        c0, c1, c2, c3 = ((p1 >> 32) & _MASK32) ^ c1 ^ k0, p1 & _MASK32, ((p0 >> 32) & _MASK32) ^ c3 ^ k1, p0 & _MASK32
-    return c0, c1, c2, c3
+
+def _mulhilo_u64(a: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(hi, lo) of a * m for int64 a in [0, 2**32).  The product may exceed 2**63: int64
+    multiplication wraps modulo 2**64 in torch's CPU kernels, leaving the bit pattern of the
+    unsigned product, and the masks recover the halves."""
+    p = a * m
+    return (p >> 32) & _MASK32, p & _MASK32
+
+
+def _philox_u64(c0, c1, c2, c3, k0, k1):
+    """Philox-4x32-10 on int64 tensors holding words in [0, 2**32) (eager form)."""
+    return _rounds(c0, c1, c2, c3, k0, k1, _mulhilo_u64, PHILOX_W0, PHILOX_W1, _MASK32)
+
+
+def photon_words(photon: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Counter words 0 and 1 of an int64 photon index: its low and high 32 bits as int32 bit
+    patterns (exact casts, see :func:`to_i32`)."""
+    return to_i32(photon & _MASK32), to_i32(photon >> 32)
 
 
 def philox4x32_scalar(counter: tuple[int, int, int, int], key: tuple[int, int]) -> tuple[int, int, int, int]:

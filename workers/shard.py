@@ -22,7 +22,7 @@ from schema import SimulationSpec
 from .binning import BinLayout, outgoing_azimuth, wrap_angle
 from .connections import ConnectionGeometry, connection_function
 from .optics import fresnel_dielectric, incident_refracted_direction, refracted_cos
-from .rng import stream_key, to_i32
+from .rng import photon_words, stream_key, to_i32
 from .tally import BatchAccumulator, ShardTally
 from .walk import ABSORBED, EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, WalkParams, compile_enabled, refill_function, step_function
 
@@ -258,7 +258,7 @@ class _Runner:
         px, py, pz, ux, uy, uz, vx, vy, vz, w, cfg, photon, draw, comp = cols
         T = self.cfgs.table
         albedo, g, k0, k1 = T.albedo[cfg], T.g[cfg], T.k0[cfg], T.k1[cfg]
-        c_lo, c_hi = to_i32(photon & 0xFFFFFFFF), to_i32(photon >> 32)
+        c_lo, c_hi = photon_words(photon)
         (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.connect_fn(
             px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, self.geo
         )

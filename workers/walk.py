@@ -22,7 +22,7 @@ import torch
 
 from .conventions import PURPOSE_WALK
 from .optics import fresnel_dielectric, sample_exponential, sample_hg, scatter_direction
-from .rng import philox4x32, to_i32, uniform_halfopen, uniform_open
+from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
 
 __all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function", "refill_function", "compile_enabled"]
 
@@ -32,8 +32,6 @@ EXITED = 1  # refracted out through the surface; x, y and u hold the crossing
 ABSORBED = 2  # killed by analog absorption or by Russian roulette
 TRUNCATED = 3  # reached the path cap (max_scatter); w is the truncated weight
 EMPTY = 4  # no photon: the shard has run out of photons to launch
-
-_MASK32 = 0xFFFFFFFF
 
 
 @dataclass(frozen=True)
@@ -228,9 +226,9 @@ def _refill_inplace(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor]
     step.copy_(torch.where(new, 0, step))
     pid = start + q // n_cfg
     photon.copy_(torch.where(new, pid, photon))
-    # Exact casts: to_i32 maps [0, 2**32) onto the int32 range before converting.
-    c_lo.copy_(torch.where(new, to_i32(pid & _MASK32), c_lo))
-    c_hi.copy_(torch.where(new, to_i32(pid >> 32), c_hi))
+    lo, hi = photon_words(pid)
+    c_lo.copy_(torch.where(new, lo, c_lo))
+    c_hi.copy_(torch.where(new, hi, c_hi))
     cfg.copy_(torch.where(new, c, cfg))
     k0.copy_(torch.where(new, t_k0[c], k0))
     k1.copy_(torch.where(new, t_k1[c], k1))
