@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from tests.stats import assert_chi2, assert_z, z_threshold
+from workers import rng
 from workers.rng import philox4x32, philox4x32_scalar, stream_key, to_i32, to_u32, uniform_halfopen, uniform_open
 
 M32 = 0xFFFFFFFF
@@ -68,10 +69,14 @@ def test_tensor_known_answers_eager():
     assert all(w.dtype == torch.int64 for w in out)
 
 
+@pytest.mark.parametrize("wide", [False, True], ids=["int32-rounds", "int64-rounds"])
 @pytest.mark.parametrize("n_rep", [11, 256])
-def test_tensor_known_answers_compiled(n_rep):
-    """The int32 wrap-around of _mulhilo must survive inductor code generation, both in a scalar
-    loop (33 elements) and in the vectorized one (768)."""
+def test_tensor_known_answers_compiled(n_rep, wide, monkeypatch):
+    """Both compiled arithmetic forms (int32 lanes with 16-bit partial products; int64 where the
+    ISA multiplies int64 vectors, see native_wide_multiply) must keep every 32-bit wrap-around
+    through inductor code generation, in a scalar loop (33 elements) and a vectorized one (768)."""
+    monkeypatch.setattr(rng, "_native_wide", wide)
+    torch._dynamo.reset()
     compiled = torch.compile(philox4x32, dynamic=False, fullgraph=True)
     counters, keys, expected = zip(*KAT)
     cols = [to_i32(c) for c in _tensors(list(counters) * n_rep, list(keys) * n_rep)]
