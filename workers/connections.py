@@ -31,6 +31,7 @@ import torch
 
 from .binning import TWO_PI, outgoing_azimuth, uniform_index, wrap_angle
 from .conventions import PURPOSE_CONNECT
+from .kernels import compile_kernel
 from .optics import fresnel_dielectric, hg_pdf, refracted_cos
 from .rng import philox4x32, uniform_halfopen
 
@@ -150,6 +151,4 @@ def _connect_both(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, c_lo, c
 @lru_cache(maxsize=None)
 def connection_function(compiled: bool):
     """Both techniques for a chunk of vertices, compiled (static chunk size) or eager."""
-    if not compiled:
-        return _connect_both
-    return torch.compile(_connect_both, dynamic=False, fullgraph=True)
+    return compile_kernel(_connect_both, "connections") if compiled else _connect_both

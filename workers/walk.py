@@ -14,13 +14,13 @@ photon's path does not depend on its lane, the lane count or the thread count.
 from __future__ import annotations
 
 import os
-import threading
 from dataclasses import dataclass, fields
 from functools import lru_cache
 
 import torch
 
 from .conventions import PURPOSE_WALK
+from .kernels import compile_kernel
 from .optics import fresnel_dielectric, sample_exponential, sample_hg, scatter_direction
 from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
 
@@ -244,9 +244,6 @@ def compile_enabled() -> bool:
     return os.environ.get("BSSRDF_COMPILE", "1") not in ("0", "false", "no")
 
 
-_compile_lock = threading.Lock()
-
-
 def _release_gil_in_compiled_kernels() -> None:
     """Let compiled CPU kernels run without the GIL, so shards on several Python threads run in
     parallel (torch 2.13's inductor calls its C++ kernels holding the GIL).
@@ -296,26 +293,6 @@ def _keep_freed_memory_in_process() -> None:
 _keep_freed_memory_in_process()
 
 
-def _maybe_compile(fn, compiled: bool):
-    """torch.compile fn for a static lane count (dynamic shapes made the step 3x slower here; the
-    shard runner always calls it on chunks of CHUNK lanes).  Calls run under a lock until the
-    first has compiled, so shards started together on several threads do not compile at once."""
-    if not compiled:
-        return fn
-    cfn = torch.compile(fn, dynamic=False, fullgraph=True)
-    warmed = threading.Event()
-
-    def call(*args):
-        if warmed.is_set():
-            return cfn(*args)
-        with _compile_lock:
-            out = cfn(*args)
-        warmed.set()
-        return out
-
-    return call
-
-
 @lru_cache(maxsize=None)
 def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bool):
     """The (possibly compiled) in-place stepping function for these constants."""
@@ -323,10 +300,10 @@ def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bo
     def fn(lanes_tensors: list[torch.Tensor]):
         return _step_inplace(lanes_tensors, p, n_steps, want_vertices)
 
-    return _maybe_compile(fn, compiled)
+    return compile_kernel(fn, "walk_step", (p, n_steps, want_vertices)) if compiled else fn
 
 
 @lru_cache(maxsize=None)
 def refill_function(compiled: bool):
     """The (possibly compiled) in-place refill, :func:`_refill_inplace`."""
-    return _maybe_compile(_refill_inplace, compiled)
+    return compile_kernel(_refill_inplace, "walk_refill") if compiled else _refill_inplace

@@ -1,0 +1,108 @@
+"""Compiled kernels kept on disk between processes (workers.kernels)."""
+
+from __future__ import annotations
+
+import ast
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+
+import workers
+from workers import kernels
+from workers.kernels import GRAPH_MODULES, artifact_key, compile_kernel
+
+
+@dataclass(frozen=True)
+class _Consts:
+    scale: float
+
+
+def _relative_imports(module: str) -> set[str]:
+    tree = ast.parse((Path(workers.__file__).parent / f"{module}.py").read_text())
+    return {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module}
+
+
+def test_graph_modules_cover_what_the_compiled_graphs_import():
+    """The source digest must cover every module a compiled graph's code can come from: the
+    package-internal import closure of walk.py and connections.py."""
+    seen, todo = set(), ["walk", "connections"]
+    while todo:
+        m = todo.pop()
+        if m not in seen:
+            seen.add(m)
+            todo.extend(_relative_imports(m) - {"kernels"})  # kernels compiles, adds no graph code
+    assert seen <= set(GRAPH_MODULES), sorted(seen - set(GRAPH_MODULES))
+
+
+def test_artifact_key_tracks_what_shapes_the_code():
+    x = torch.zeros(8)
+    base = artifact_key("k", _Consts(1.0), ([x, x], 3))
+    assert base == artifact_key("k", _Consts(1.0), ([torch.ones(8), x], 3)), "values of tensors are not part of it"
+    changed = [
+        artifact_key("other", _Consts(1.0), ([x, x], 3)),
+        artifact_key("k", _Consts(2.0), ([x, x], 3)),
+        artifact_key("k", _Consts(1.0), ([torch.zeros(16), x], 3)),
+        artifact_key("k", _Consts(1.0), ([x.double(), x], 3)),
+        artifact_key("k", _Consts(1.0), ([x, x], 4)),
+    ]
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads + 1)
+        changed.append(artifact_key("k", _Consts(1.0), ([x, x], 3)))
+    finally:
+        torch.set_num_threads(threads)
+    with torch.no_grad():
+        changed.append(artifact_key("k", _Consts(1.0), ([x, x], 3)))
+    assert len({base, *changed}) == len(changed) + 1
+
+
+def test_artifact_key_refuses_arguments_it_cannot_describe():
+    with pytest.raises(TypeError, match="cannot key"):
+        artifact_key("k", None, (object(),))
+
+
+def _axpy(xs, a, consts=_Consts(1.5)):
+    x, y = xs
+    return (x * consts.scale + y * a).sum()
+
+
+def test_kernel_is_saved_loaded_and_rebuilt(tmp_path, monkeypatch, caplog):
+    monkeypatch.setenv("BSSRDF_KERNEL_CACHE", str(tmp_path))
+    x, y = torch.arange(16.0), torch.full((16,), 2.0)
+    expected = float((x * 1.5 + y * 3.0).sum())
+
+    first = compile_kernel(_axpy, "axpy", _Consts(1.5))
+    assert float(first([x, y], 3.0)) == expected
+    saved = sorted(tmp_path.glob("axpy-*.pt2"))
+    assert len(saved) == 1
+    stamp = saved[0].stat().st_mtime_ns
+
+    # A new kernel object (as in a new process) loads the artifact instead of compiling.
+    loaded = compile_kernel(_axpy, "axpy", _Consts(1.5))
+    assert float(loaded([x, y], 3.0)) == expected
+    assert sorted(tmp_path.glob("axpy-*.pt2")) == saved
+    assert saved[0].stat().st_mtime_ns == stamp, "loaded, not compiled and written again"
+
+    # Other shapes: a second variant and artifact; the first still serves its own shapes.
+    x2, y2 = torch.arange(32.0), torch.ones(32)
+    assert float(loaded([x2, y2], 3.0)) == float((x2 * 1.5 + y2 * 3.0).sum())
+    assert len(list(tmp_path.glob("axpy-*.pt2"))) == 2
+    assert float(loaded([x, y], 3.0)) == expected
+
+    # A damaged artifact is compiled again, with a warning, and replaced.
+    saved[0].write_bytes(b"not an artifact")
+    with caplog.at_level(logging.WARNING, logger=kernels.__name__):
+        again = compile_kernel(_axpy, "axpy", _Consts(1.5))
+        assert float(again([x, y], 3.0)) == expected
+    assert "did not load" in caplog.text
+    assert saved[0].read_bytes() != b"not an artifact"
+
+
+def test_cache_can_be_switched_off(monkeypatch):
+    monkeypatch.setenv("BSSRDF_KERNEL_CACHE", "off")
+    assert kernels.cache_dir() is None
+    k = compile_kernel(_axpy, "axpy", _Consts(1.5))
+    assert float(k([torch.ones(4), torch.ones(4)], 1.0)) == 10.0

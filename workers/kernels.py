@@ -1,0 +1,145 @@
+"""Compiled kernels of the walk, saved whole so that a new process starts without tracing.
+
+torch.compile keeps inductor's generated code in an on-disk cache, but every new process still
+has dynamo trace the Python function before it can look that code up: 4-11 s per process for the
+8-step walk and its refill on the machines measured (BENCHMARKS.md).  A worker process pays this on
+every start, which is what kept two workers from scaling end to end.  torch's ahead-of-time
+compile (``torch.compile(fn).aot_compile``) serializes the traced and compiled function; a new
+process loads it instead of tracing.
+
+An artifact is keyed by everything that shapes the generated code:
+- the kernel's name and static constants (the WalkParams, steps per call, ...);
+- the kind, dtype and shape of every argument (tensors inside lists and dataclasses included) and
+  the values of non-tensor arguments (they are baked into the graph);
+- torch and Python versions, the CPU's vector capability (an AVX-512 kernel cannot run on an
+  AVX2 machine sharing the cache), the torch thread count (the kernels differ for 1 and more
+  threads) and grad mode;
+- a digest of the source of the modules the graphs are traced from (GRAPH_MODULES).
+
+Artifacts live in ``$BSSRDF_KERNEL_CACHE`` (default ``$XDG_CACHE_HOME/bssrdf-db/kernels``, else
+``~/.cache/bssrdf-db/kernels``) and are written atomically, so processes compiling the same
+kernel at once are harmless; ``BSSRDF_KERNEL_CACHE=off`` compiles in-process with plain
+torch.compile.  An artifact that fails to load is compiled again and replaced.  A kernel
+compiled ahead of time does not share inductor's graph cache: the first use of a new kernel on a
+machine costs a full compile (one to two minutes for the 8-step walk) once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import os
+import sys
+import threading
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+
+from . import rng
+
+__all__ = ["GRAPH_MODULES", "cache_dir", "compile_kernel", "source_digest"]
+
+log = logging.getLogger(__name__)
+
+# Modules of this package whose code ends up in a compiled graph (tests check the import closure).
+GRAPH_MODULES = ("walk", "connections", "optics", "rng", "binning", "conventions")
+
+_compile_lock = threading.Lock()  # one compile at a time per process (threads sharing a kernel)
+
+
+def cache_dir() -> Path | None:
+    """Where artifacts are kept, or None when the cache is switched off."""
+    env = os.environ.get("BSSRDF_KERNEL_CACHE", "")
+    if env.lower() in ("off", "0", "none", "no"):
+        return None
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "bssrdf-db" / "kernels"
+
+
+def source_digest() -> str:
+    """sha256 over the source files of GRAPH_MODULES."""
+    h = hashlib.sha256()
+    here = Path(__file__).parent
+    for name in GRAPH_MODULES:
+        h.update(name.encode() + b"\0" + (here / f"{name}.py").read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _describe(v: Any) -> Any:
+    """A hashable description of an argument: what the compiled graph is specialised on."""
+    if isinstance(v, torch.Tensor):
+        return ("tensor", str(v.dtype), tuple(v.shape), tuple(v.stride()), v.device.type)
+    if isinstance(v, (list, tuple)):
+        return (type(v).__name__, tuple(_describe(x) for x in v))
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return (type(v).__qualname__, tuple((f.name, _describe(getattr(v, f.name))) for f in dataclasses.fields(v)))
+    if isinstance(v, (bool, int, float, str, type(None))):
+        return (type(v).__name__, repr(v))
+    raise TypeError(f"compile_kernel: cannot key an argument of type {type(v).__name__}")
+
+
+def artifact_key(name: str, constants: Any, args: tuple) -> str:
+    parts = (
+        name, repr(constants), _describe(args), torch.__version__, sys.version_info[:2], torch.backends.cpu.get_cpu_capability(),
+        torch.get_num_threads(), torch.is_grad_enabled(), source_digest(),
+    )  # fmt: skip
+    return hashlib.sha256(repr(parts).encode()).hexdigest()
+
+
+class _Kernel:
+    """A function compiled on first call: loaded from its artifact, or compiled and saved.
+
+    Each variant is specialised on the arguments it was first called with; a call whose
+    arguments fail every variant's guards obtains one more.
+    """
+
+    def __init__(self, fn: Callable, name: str, constants: Any):
+        self.fn, self.name, self.constants = fn, name, constants
+        self.variants: list[Callable] = []
+
+    def __call__(self, *args):
+        variants = self.variants
+        for compiled in reversed(variants):
+            try:
+                return compiled(*args)
+            except RuntimeError as exc:  # arguments this variant was not compiled for
+                if "GuardManager check failed" not in str(exc):
+                    raise
+        with _compile_lock:
+            if self.variants is variants:  # no other thread added one meanwhile
+                self.variants = [*variants, self._obtain(args)]
+        return self.variants[-1](*args)
+
+    def _obtain(self, args: tuple) -> Callable:
+        rng.native_wide_multiply()  # decided outside the trace (the traced code only reads it)
+        compiler = torch.compile(self.fn, fullgraph=True, dynamic=False)
+        directory = cache_dir()
+        if directory is None or not hasattr(compiler, "aot_compile"):
+            return compiler
+        path = directory / f"{self.name}-{artifact_key(self.name, self.constants, args)[:24]}.pt2"
+        if path.exists():
+            try:
+                # The artifact was built for this CPU capability (it is in the key): let inductor
+                # trust the CPU flags instead of probe-building a program per ISA (~2 s a process).
+                with open(path, "rb") as f, torch._inductor.config.patch({"cpp.vec_isa_ok": True}):
+                    return torch.compiler.load_compiled_function(f)
+            except Exception as exc:  # noqa: BLE001 - any unreadable artifact is rebuilt
+                log.warning("kernel artifact %s did not load (%s: %s); compiling it again", path, type(exc).__name__, exc)
+        compiled = compiler.aot_compile((args, {}))
+        directory.mkdir(parents=True, exist_ok=True)
+        compiled.save_compiled_function(str(path))
+        return compiled
+
+
+def compile_kernel(fn: Callable, name: str, constants: Any = None) -> Callable:
+    """fn compiled for static shapes (fullgraph), kept on disk between processes.
+
+    name and constants (anything with a faithful repr: the values fn closes over) identify the
+    kernel; the arguments of the first call (and of any later call with other shapes) complete
+    the key.  The artifact specialises on those shapes, so callers pass fixed-size chunks.
+    """
+    return _Kernel(fn, name, constants)
