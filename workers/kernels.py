@@ -103,12 +103,16 @@ class _Kernel:
 
     def __call__(self, *args):
         variants = self.variants
-        for compiled in reversed(variants):
+        for i in range(len(variants) - 1, -1, -1):
             try:
-                return compiled(*args)
+                out = variants[i](*args)
             except RuntimeError as exc:  # arguments this variant was not compiled for
                 if "GuardManager check failed" not in str(exc):
                     raise
+                continue
+            if i != len(variants) - 1:  # most recently used last: tried first next time
+                self.variants = [*variants[:i], *variants[i + 1 :], variants[i]]
+            return out
         with _compile_lock:
             if self.variants is variants:  # no other thread added one meanwhile
                 self.variants = [*variants, self._obtain(args)]

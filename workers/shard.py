@@ -32,6 +32,7 @@ CHUNK = 1 << 14  # lanes per call of the compiled step (one static shape for eve
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
 CONNECT_CHUNK = 1 << 11  # lanes per call with connections: their kernel dominates, few photons run
 MAX_CHUNKS = 4  # 2^16 lanes in all: enough photons in flight to keep every chunk full
+TAIL_DIVISOR = 8  # exit walk: the last photons of a shard run in chunks of 1/TAIL_DIVISOR the lanes
 PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
 EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
@@ -120,6 +121,10 @@ class _Runner:
         tensors = self.lanes.tensors()
         self.chunks = [[t[a : a + self.chunk] for t in tensors] for a in range(0, len(self.lanes.status), self.chunk)]
         self.active = len(self.chunks)  # chunks [0, active) hold every running lane
+        # A step costs the same for idle lanes: a shard's last photons, the longest paths, are
+        # stepped in one short chunk (compiled: a second shape) once they fit.  Not with
+        # connections, whose chunks are short already and whose kernel dominates.
+        self.tail_chunk = None if self.connect else self.chunk // TAIL_DIVISOR
         self.table_tensors = self.cfgs.table.tensors()
         abs_g = np.abs(self.cfgs.table.g.numpy())
         self.params = WalkParams(
@@ -156,18 +161,30 @@ class _Runner:
             self.next_launch += min(free, self.n_launch - self.next_launch)
         return self.next_launch - n0
 
+    def shrinkable(self, running: int) -> bool:
+        """Whether compact() would step fewer lanes: nothing is left to launch and the running
+        lanes fit in fewer chunks, or in the tail chunk."""
+        if self.next_launch < self.n_launch:
+            return False
+        if running <= (self.active - 1) * self.chunk:
+            return True
+        return self.tail_chunk is not None and self.chunk != self.tail_chunk and running <= self.tail_chunk
+
     def compact(self, running: int) -> None:
         """Tail of the shard (nothing left to launch): move the running lanes, in lane order, to
-        the front so that only ceil(running / CHUNK) chunks are stepped."""
-        need = max(1, math.ceil(running / self.chunk))
-        if need >= self.active:
+        the front so that only ceil(running / chunk) chunks are stepped, and once they fit in
+        the tail chunk, step that alone."""
+        if not self.shrinkable(running):
             return
         n = self.active * self.chunk
         idx = torch.nonzero(self.lanes.status[:n] == RUNNING).squeeze(1)
         for t in self.lanes.tensors():
             t[: len(idx)] = t[idx]
         self.lanes.status[len(idx) : n] = EMPTY
-        self.active = need
+        if self.tail_chunk is not None and running <= self.tail_chunk:
+            self.chunk = self.tail_chunk
+            self.chunks = [[t[: self.chunk] for t in self.lanes.tensors()]]
+        self.active = max(1, math.ceil(running / self.chunk))
 
     def harvest(self, running: int) -> int:
         """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
@@ -190,8 +207,7 @@ class _Runner:
             self.progress(len(done))
         st[done] = EMPTY  # harvested: free for a new photon, never tallied twice
         running += self.refill()
-        if self.next_launch == self.n_launch:
-            self.compact(running)
+        self.compact(running)
         return running
 
     # -- exit estimator -------------------------------------------------------------------------
@@ -202,7 +218,8 @@ class _Runner:
         ux, uy, uz = L.ux[idx].double(), L.uy[idx].double(), L.uz[idx].double()
         r_mm = torch.sqrt(x * x + y * y) / self.sigma_t[cfg]
         ir = self.layout.radial_index(r_mm, self.channel_of_cfg[cfg])
-        it = self.layout.theta_index(wrap_angle(torch.atan2(y, x)))
+        # One theta_s bin (normal incidence) needs no angle: every event is in bin 0.
+        it = self.layout.theta_index(wrap_angle(torch.atan2(y, x))) if self.layout.n_theta > 1 else torch.zeros_like(cfg)
         cos_o = refracted_cos(uz, self.params.inv_eta)
         ic = self.layout.cos_index(cos_o)
         ip = self.layout.phi_index(outgoing_azimuth(x, y, ux, uy))
@@ -291,9 +308,7 @@ class _Runner:
                 if self.connect:
                     self.collect_vertices(vertex, k * self.chunk)
             self.steps += n_steps
-            if finished >= harvest_at or (running == 0 and finished > 0) or (
-                finished and self.next_launch == self.n_launch and running <= (self.active - 1) * self.chunk
-            ):
+            if finished >= harvest_at or (running == 0 and finished > 0) or (finished and self.shrinkable(running)):
                 running = self.harvest(running)
         self.flush_vertices(force=True)
         self.acc.fold_ready()

@@ -77,15 +77,8 @@ class BatchAccumulator:
 
     def add_hist(self, estimator: str, batch: np.ndarray, flat: np.ndarray, g: np.ndarray, s: np.ndarray) -> None:
         """Add contributions g (to G) and s (to S, i.e. g / cos_o) at flat histogram indices."""
-        lo, hi = int(batch.min()), int(batch.max())
-        # Usually one batch (photons run in order); otherwise only the batches present: a batch
-        # in between may already be folded and must not be reopened.
-        for b in [lo] if lo == hi else np.unique(batch).tolist():
-            if lo == hi:
-                f, gw, sw = flat, g, s
-            else:
-                sel = batch == b
-                f, gw, sw = flat[sel], g[sel], s[sel]
+        for b, sel in _groups(batch):
+            f, gw, sw = (flat, g, s) if sel is None else (flat[sel], g[sel], s[sel])
             arrays = self._batch(b)
             arrays[f"{estimator}/G"] += np.bincount(f, weights=gw, minlength=self.hist_size)
             arrays[f"{estimator}/S"] += np.bincount(f, weights=sw, minlength=self.hist_size)
@@ -96,13 +89,12 @@ class BatchAccumulator:
         Complete batches are folded by :meth:`fold_ready`, which the caller invokes once every
         contribution of those photons has been added (connections are tallied in chunks).
         """
-        batch = self.batch_of(photon)
-        for b in np.unique(batch):
-            sel = batch == b
-            arrays = self._batch(int(b))
-            arrays["absorbed"] += np.bincount(cfg[sel], weights=absorbed[sel], minlength=self.n_cfg)
-            arrays["truncated"] += np.bincount(cfg[sel], weights=truncated[sel], minlength=self.n_cfg)
-            self.remaining[int(b)] -= int(sel.sum())
+        for b, sel in _groups(self.batch_of(photon)):
+            c, a, t = (cfg, absorbed, truncated) if sel is None else (cfg[sel], absorbed[sel], truncated[sel])
+            arrays = self._batch(b)
+            arrays["absorbed"] += np.bincount(c, weights=a, minlength=self.n_cfg)
+            arrays["truncated"] += np.bincount(c, weights=t, minlength=self.n_cfg)
+            self.remaining[b] -= len(c)
 
     @property
     def ready(self) -> bool:
@@ -135,6 +127,22 @@ class BatchAccumulator:
     @property
     def complete(self) -> bool:
         return not self.open and all(r == 0 for r in self.remaining)
+
+
+def _groups(batch: np.ndarray):
+    """(batch, selection) for each batch present, in batch order; selection None when all
+    events are in one batch (usual: photons run in order).  Only the batches present: one in
+    between may already be folded and must not be reopened."""
+    if batch.size == 0:
+        return
+    lo, hi = int(batch.min()), int(batch.max())
+    if lo == hi:
+        yield lo, None
+        return
+    for b in range(lo, hi + 1):  # few batches: a comparison each beats sorting the events
+        sel = batch == b
+        if sel.any():
+            yield b, sel
 
 
 @dataclass
