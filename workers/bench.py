@@ -36,21 +36,26 @@ def _spec(medium: str, estimator: str, photons: int, shards: int = 1) -> Simulat
     })  # fmt: skip
 
 
-def bench_one(medium: str, estimator: str, photons: int, threads: int = 1) -> dict:
+def bench_one(medium: str, estimator: str, photons: int, threads: int = 1, repeat: int = 3) -> dict:
     """Run `threads` shards of `photons` photons each concurrently, one worker process per shard
     (:class:`workers.pool.ShardPool`, as `bssrdf simulate` does), after every process has warmed up
-    (compiled) on a small run.
+    (compiled) on a small run; `repeat` times, reporting the median run (by wall time) and every
+    run's photons/s (shared machines vary by tens of percent from run to run).
 
     Rates per core divide by `threads`; CPU time is the shards' own (thread CPU time in their
     processes), so steps per CPU-second show how much of each core the walk gets.
     """
     warm = _spec(medium, estimator, max(8, photons // 50), 1)
     spec = _spec(medium, estimator, photons * threads, threads)
+    runs = []
     with ShardPool(threads, warm_spec=warm) as pool:
         pool.run(_spec(medium, estimator, max(8, photons // 20) * threads, threads), range(threads))  # the pool's first run pays set-up costs
-        wall0 = time.perf_counter()
-        tallies = pool.run(spec, range(threads))
-        wall = time.perf_counter() - wall0
+        for _ in range(repeat):
+            wall0 = time.perf_counter()
+            tallies = pool.run(spec, range(threads))
+            runs.append((time.perf_counter() - wall0, tallies))
+    runs.sort(key=lambda run: run[0])
+    wall, tallies = runs[len(runs) // 2]
     cpu = sum(t.info["cpu_s"] for t in tallies)
     peak = max(t.info.get("maxrss_mib", 0.0) for t in tallies)
     steps = sum(t.info["photon_steps"] for t in tallies)
@@ -68,6 +73,7 @@ def bench_one(medium: str, estimator: str, photons: int, threads: int = 1) -> di
         "threads": threads,
         "engine": tallies[0].info["engine"],
         "memory_peak_mib": peak,
+        "runs_photons_per_s": [photons * threads / w for w, _ in runs],
     }
 
 
@@ -77,11 +83,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=main)
 
 
+def _at_least_one(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
+
+
 def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--media", default="M1,M2", help="comma-separated subset of M1,M2")
     p.add_argument("--estimators", default="exits,connections", help="comma-separated subset of exits,connections")
     p.add_argument("--photons", type=int, help="photons per run (default: per medium and estimator)")
     p.add_argument("--threads", type=int, default=1, help="shards run concurrently, one worker process and core each (default 1)")
+    p.add_argument("--repeat", type=_at_least_one, default=3, help="timed runs; the median is reported (default 3)")
     p.add_argument("--json", action="store_true", help="print one JSON object keyed by medium and estimator")
 
 
@@ -90,13 +104,14 @@ def main(args: argparse.Namespace) -> int:
     for medium in args.media.split(","):
         for est in args.estimators.split(","):
             photons = args.photons or DEFAULT_PHOTONS[(medium, est)]
-            r = bench_one(medium, est, photons, args.threads)
+            r = bench_one(medium, est, photons, args.threads, args.repeat)
             out.setdefault(medium, {})[est] = r
             if not args.json:
                 print(
                     f"{medium} {est:<12} {r['photons_per_s']:>10.4g} photons/s  {r['steps_per_s']:>9.3g} steps/s  "
                     f"{r['steps_per_s_per_core']:>9.3g} steps/s per core  {r['steps_per_cpu_s']:>9.3g} steps/CPU-s  ({r['steps_per_photon']:.1f} steps/photon, "
-                    f"{r['threads']} threads, {r['engine']}, peak {r['memory_peak_mib']:.0f} MiB per process)",
+                    f"{r['threads']} threads, {r['engine']}, peak {r['memory_peak_mib']:.0f} MiB per process; "
+                    f"median of {len(r['runs_photons_per_s'])}: {min(r['runs_photons_per_s']):.4g}-{max(r['runs_photons_per_s']):.4g} photons/s)",
                     flush=True,
                 )
     if args.json:
