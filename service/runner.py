@@ -18,6 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from workers.cores import default_workers
+
 __all__ = ["add_parser", "main", "run_local", "start_workers", "stop_workers", "format_progress", "format_summary"]
 
 _REPO = Path(__file__).resolve().parents[1]
@@ -137,7 +139,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("spec", help="simulation spec (JSON)")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="worker processes (default: cores)")
+    p.add_argument("--workers", type=int, default=default_workers(), help="worker processes (default: cores)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--data-dir", default=None, help="data directory (default: BSSRDF_DATA_DIR or ./.bssrdf)")
 

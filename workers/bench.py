@@ -18,8 +18,6 @@ import time
 
 from schema import SimulationSpec
 
-from .pool import ShardPool
-
 __all__ = ["MEDIA", "bench_one", "add_parser", "main"]
 
 MEDIA = {
@@ -45,6 +43,8 @@ def bench_one(medium: str, estimator: str, photons: int, threads: int = 1, repea
     Rates per core divide by `threads`; CPU time is the shards' own (thread CPU time in their
     processes), so steps per CPU-second show how much of each core the walk gets.
     """
+    from .pool import ShardPool  # torch: not needed to build the command-line parser
+
     warm = _spec(medium, estimator, max(8, photons // 50), 1)
     spec = _spec(medium, estimator, photons * threads, threads)
     runs = []

@@ -26,18 +26,11 @@ import torch
 
 from schema import SimulationSpec, parse_spec
 
+from .cores import default_workers
 from .shard import run_shard
 from .tally import ShardTally
 
 __all__ = ["ShardPool", "default_workers"]
-
-
-def default_workers() -> int:
-    """One worker per core this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 _progress_queue = None  # set in each worker process by _init_worker

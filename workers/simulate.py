@@ -15,14 +15,12 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import torch
-
 from schema import SpecError, load_spec
 
-from .merge import merge
-from .output import summary, write_tables
-from .pool import ShardPool, default_workers
-from .shard import run_shard
+from .cores import default_workers
+
+# torch and the walk are imported where they are used: `bssrdf run` and `bssrdf --help` build
+# this module's parser, and a worker-launching parent must not spend seconds importing torch.
 
 __all__ = ["add_parser", "main", "simulate", "run_shards", "format_summary"]
 
@@ -35,12 +33,19 @@ def simulate(spec, *, progress=None, threads: int | None = None, processes: int 
     one per core), each with one torch intra-op thread.  The merge sums in shard order, so the
     result is bitwise the same for any number of threads or processes.
     """
+    from .merge import merge
+
     return merge(spec, run_shards(spec, range(spec.shards), progress=progress, threads=threads, processes=processes))
 
 
 def run_shards(spec, indices, *, progress=None, threads: int | None = None, processes: int | None = None) -> list:
     """run_shard for each index, on `processes` worker processes or `threads` threads of this
     process (one torch thread each); the tallies in the order of indices."""
+    import torch
+
+    from .pool import ShardPool
+    from .shard import run_shard
+
     indices = list(indices)
     if processes is not None and min(processes, len(indices)) > 1:
         with ShardPool(min(processes, len(indices))) as pool:
@@ -134,6 +139,8 @@ def load_with_overrides(path: str, photons: int | None, seed: int | None):
 
 
 def main(args: argparse.Namespace) -> int:
+    from .output import summary, write_tables
+
     try:
         spec = load_with_overrides(args.spec, args.photons, args.seed)
     except (SpecError, OSError) as exc:
