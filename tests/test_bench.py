@@ -24,3 +24,11 @@ def test_bench_refuses_zero_repeats():
     _arguments(p)
     with pytest.raises(SystemExit):
         p.parse_args(["--repeat", "0"])
+
+
+def test_bench_on_two_worker_processes():
+    """--threads 2: both processes warm up before timing (the pool waits for each) and the
+    figures count both shards."""
+    r = bench_one("M2", "exits", photons=300, threads=2, repeat=1)
+    assert r["threads"] == 2 and r["photons"] == 600
+    assert r["steps_per_s_per_core"] == pytest.approx(r["steps_per_s"] / 2)

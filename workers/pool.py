@@ -36,12 +36,13 @@ __all__ = ["ShardPool", "default_workers"]
 _progress_queue = None  # set in each worker process by _init_worker
 
 
-def _init_worker(progress_queue, warm_spec: dict | None) -> None:
+def _init_worker(progress_queue, warm_spec: dict | None, ready) -> None:
     global _progress_queue
     _progress_queue = progress_queue
     torch.set_num_threads(1)
     if warm_spec is not None:
         run_shard(parse_spec(warm_spec), 0)
+    ready.release()
 
 
 def _report(n: int) -> None:
@@ -70,11 +71,19 @@ class ShardPool:
         self.workers = workers
         ctx = mp.get_context("spawn")
         self._queue = ctx.SimpleQueue()
+        ready = ctx.Semaphore(0)  # released by each process once initialised (and warmed up)
         warm = warm_spec.model_dump(mode="json") if warm_spec is not None else None
-        self._pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(self._queue, warm))
+        self._pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(self._queue, warm, ready))
         if warm_spec is not None:
-            # Start every process now and wait until each has warmed up.
-            list(self._pool.map(time.sleep, [0.0] * workers))
+            # Start every process now (one task each: a spawn pool starts a process per task
+            # while none is idle) and wait until each has warmed up; any one finishing the
+            # tasks does not mean the others are ready.
+            tasks = [self._pool.submit(time.sleep, 0.0) for _ in range(workers)]
+            for _ in range(workers):
+                while not ready.acquire(timeout=1.0):
+                    failed = [t for t in tasks if t.done() and t.exception() is not None]
+                    if failed:
+                        raise failed[0].exception()
 
     def __enter__(self) -> "ShardPool":
         return self
