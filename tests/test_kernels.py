@@ -106,3 +106,13 @@ def test_cache_can_be_switched_off(monkeypatch):
     assert kernels.cache_dir() is None
     k = compile_kernel(_axpy, "axpy", _Consts(1.5))
     assert float(k([torch.ones(4), torch.ones(4)], 1.0)) == 10.0
+
+
+def test_unwritable_cache_still_runs_the_kernel(tmp_path, monkeypatch, caplog):
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where the cache directory would go")
+    monkeypatch.setenv("BSSRDF_KERNEL_CACHE", str(blocker / "kernels"))
+    with caplog.at_level(logging.WARNING, logger=kernels.__name__):
+        k = compile_kernel(_axpy, "axpy", _Consts(1.5))
+        assert float(k([torch.ones(4), torch.ones(4)], 1.0)) == 10.0
+    assert "not saved" in caplog.text

@@ -134,8 +134,11 @@ class _Kernel:
             except Exception as exc:  # noqa: BLE001 - any unreadable artifact is rebuilt
                 log.warning("kernel artifact %s did not load (%s: %s); compiling it again", path, type(exc).__name__, exc)
         compiled = compiler.aot_compile((args, {}))
-        directory.mkdir(parents=True, exist_ok=True)
-        compiled.save_compiled_function(str(path))
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+            compiled.save_compiled_function(str(path))
+        except OSError as exc:  # e.g. a read-only home in a container: run, just do not keep it
+            log.warning("kernel artifact %s not saved (%s: %s); set BSSRDF_KERNEL_CACHE to a writable directory", path, type(exc).__name__, exc)
         return compiled
 
 
