@@ -39,7 +39,7 @@ import torch
 
 from . import rng
 
-__all__ = ["GRAPH_MODULES", "cache_dir", "compile_kernel", "source_digest"]
+__all__ = ["GRAPH_MODULES", "artifact_key", "cache_dir", "compile_kernel", "source_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +83,9 @@ def _describe(v: Any) -> Any:
 
 
 def artifact_key(name: str, constants: Any, args: tuple) -> str:
+    """sha256 naming the artifact of kernel `name` with these constants, called with `args`
+    (see the module docstring for what it covers; inductor settings from the environment are
+    not part of it)."""
     parts = (
         name, repr(constants), _describe(args), torch.__version__, sys.version_info[:2], torch.backends.cpu.get_cpu_capability(),
         torch.get_num_threads(), torch.is_grad_enabled(), source_digest(),
