@@ -17,15 +17,16 @@ An artifact is keyed by everything that shapes the generated code:
 - a digest of the source of the modules the graphs are traced from (GRAPH_MODULES).
 
 Artifacts live in ``$BSSRDF_KERNEL_CACHE`` (default ``$XDG_CACHE_HOME/bssrdf-db/kernels``, else
-``~/.cache/bssrdf-db/kernels``) and are written atomically, so processes compiling the same
-kernel at once are harmless; ``BSSRDF_KERNEL_CACHE=off`` compiles in-process with plain
-torch.compile.  An artifact that fails to load is compiled again and replaced.  A kernel
+``~/.cache/bssrdf-db/kernels``) and are written atomically; of several processes wanting the
+same missing kernel one compiles it (under a file lock) and the others wait and load it.
+``BSSRDF_KERNEL_CACHE=off`` compiles in-process with plain torch.compile.  An artifact that fails to load is compiled again and replaced.  A kernel
 compiled ahead of time does not share inductor's graph cache: the first use of a new kernel on a
 machine costs a full compile (one to two minutes for the 8-step walk) once.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import logging
@@ -128,21 +129,65 @@ class _Kernel:
         if directory is None or not hasattr(compiler, "aot_compile"):
             return compiler
         path = directory / f"{self.name}-{artifact_key(self.name, self.constants, args)[:24]}.pt2"
-        if path.exists():
+        stamp = _stamp(path)
+        if stamp is not None and (loaded := _load(path)) is not None:
+            return loaded
+        # One process compiles a given artifact; others wanting it meanwhile wait, then load it.
+        with _file_lock(path):
+            if _stamp(path) not in (None, stamp) and (loaded := _load(path)) is not None:
+                return loaded
+            compiled = compiler.aot_compile((args, {}))
             try:
-                # The artifact was built for this CPU capability (it is in the key): let inductor
-                # trust the CPU flags instead of probe-building a program per ISA (~2 s a process).
-                with open(path, "rb") as f, torch._inductor.config.patch({"cpp.vec_isa_ok": True}):
-                    return torch.compiler.load_compiled_function(f)
-            except Exception as exc:  # noqa: BLE001 - any unreadable artifact is rebuilt
-                log.warning("kernel artifact %s did not load (%s: %s); compiling it again", path, type(exc).__name__, exc)
-        compiled = compiler.aot_compile((args, {}))
-        try:
-            directory.mkdir(parents=True, exist_ok=True)
-            compiled.save_compiled_function(str(path))
-        except OSError as exc:  # e.g. a read-only home in a container: run, just do not keep it
-            log.warning("kernel artifact %s not saved (%s: %s); set BSSRDF_KERNEL_CACHE to a writable directory", path, type(exc).__name__, exc)
+                compiled.save_compiled_function(str(path))
+            except OSError as exc:  # e.g. a read-only home in a container: run, just do not keep it
+                log.warning("kernel artifact %s not saved (%s: %s); set BSSRDF_KERNEL_CACHE to a writable directory", path, type(exc).__name__, exc)
+            else:
+                log.info("kernel %s compiled and saved to %s", self.name, path)
         return compiled
+
+
+def _stamp(path: Path) -> int | None:
+    """Modification time of path in ns, None if it does not exist."""
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return None
+
+
+def _load(path: Path) -> Callable | None:
+    """The compiled function saved at path, or None (with a warning) if it does not load."""
+    try:
+        # The artifact was built for this CPU capability (it is in the key): let inductor trust
+        # the CPU flags for the base ISA instead of probe-building a program (saves ~0.5 s).
+        with open(path, "rb") as f, torch._inductor.config.patch({"cpp.vec_isa_ok": True}):
+            loaded = torch.compiler.load_compiled_function(f)
+    except Exception as exc:  # noqa: BLE001 - any unreadable artifact is rebuilt
+        log.warning("kernel artifact %s did not load (%s: %s); compiling it again", path, type(exc).__name__, exc)
+        return None
+    log.info("kernel loaded from %s", path)
+    return loaded
+
+
+@contextlib.contextmanager
+def _file_lock(path: Path):
+    """An exclusive lock on path + ".lock" (fcntl; released if the holder dies).  Where the
+    directory cannot be created or locked, nothing is locked (compiling twice is only slower)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(f"{path}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError:
+        yield
+        return
+    try:
+        import fcntl
+
+        fcntl.flock(fd, fcntl.LOCK_EX)
+    except (ImportError, OSError):  # pragma: no cover - not POSIX, or a filesystem without locks
+        pass
+    try:
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
 
 
 def compile_kernel(fn: Callable, name: str, constants: Any = None) -> Callable:
