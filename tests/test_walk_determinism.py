@@ -185,3 +185,55 @@ def test_compiled_walk_is_deterministic_and_agrees_with_eager(walk_spec, walk_st
     for name in ("exits/Rd", "connections/Rd"):
         z.append(walk_stats.z(compiled_result.mean(name), compiled_result.stderr(name), eager.mean(name), eager.stderr(name)).ravel())
     walk_stats.assert_within(np.concatenate(z), walk_stats.dof(eager), "compiled vs eager (same photons: conservative)")
+
+
+_COMPILED_EXITS_SCRIPT = """
+import json, sys
+import torch
+from schema import SimulationSpec
+from workers.shard import run_shard
+
+torch.set_num_threads(1)
+spec = SimulationSpec.model_validate_json(sys.argv[1])
+t = run_shard(spec, 0)
+print(json.dumps({
+    "engine": t.info["engine"], "tail_lanes": t.info["tail_lanes"], "n_sum": t.n_sum, "k": t.k,
+    "stats": {name: [a.tolist() for a in t.stats[name]] for name in ("exits/Rd", "exits/radial_G", "walk/absorbed")},
+}))
+"""
+
+
+@pytest.mark.slow
+def test_compiled_exit_walk_with_its_tail_chunk_agrees_with_eager(walk_stats):
+    """The compiled exit walk (8 steps per call, the shard's last photons in the short tail chunk)
+    against the eager walk on independent photons (another seed): Rd, Rd(r) of every component
+    and the absorbed power agree within error bars.  The medium is the benchmark's M2, whose
+    kernels the benchmark has usually compiled already."""
+    from workers.bench import _spec
+    from workers.merge import merge
+
+    base = _spec("M2", "exits", 200_000).model_copy(update={"batches_per_shard": 64})
+    compiled_spec = base.model_copy(update={"seed": base.seed + 1})
+    env = dict(os.environ, BSSRDF_COMPILE="1")
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, "-c", _COMPILED_EXITS_SCRIPT, compiled_spec.model_dump_json()],
+        cwd=root, env=env, capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert got["engine"] == "compiled"
+    assert got["tail_lanes"] and 0 < got["tail_lanes"] <= 2048, "the tail chunk must have run"
+    assert got["n_sum"] == 200_000 and got["k"] == 64
+
+    eager = merge(base, [run_shard(base, 0)])
+    compiled = dataclasses.replace(eager, stats={k: [np.array(a) for a in v] for k, v in got["stats"].items()})
+    def z_of(name: str, sel=slice(None)) -> np.ndarray:
+        a, sa, b, sb = (v[sel] for v in (compiled.mean(name), compiled.stderr(name), eager.mean(name), eager.stderr(name)))
+        keep = (sa > 0) | (sb > 0)  # bins no photon reached in either run carry no information
+        return walk_stats.z(a[keep], sa[keep], b[keep], sb[keep]).ravel()
+
+    dof = walk_stats.dof(eager)
+    headline = np.concatenate([z_of("exits/Rd"), z_of("walk/absorbed")])
+    walk_stats.assert_within(headline, dof, "compiled (with tail) vs eager: Rd per component, absorbed")
+    walk_stats.assert_within(z_of("exits/radial_G", (slice(None), 2)), dof, "compiled (with tail) vs eager: Rd(r), total")

@@ -125,6 +125,7 @@ class _Runner:
         # stepped in one short chunk (compiled: a second shape) once they fit.  Not with
         # connections, whose chunks are short already and whose kernel dominates.
         self.tail_chunk = None if self.connect else self.chunk // TAIL_DIVISOR
+        self.tail_lanes = None  # photons still running when the tail chunk took over
         self.table_tensors = self.cfgs.table.tensors()
         abs_g = np.abs(self.cfgs.table.g.numpy())
         self.params = WalkParams(
@@ -181,7 +182,8 @@ class _Runner:
         for t in self.lanes.tensors():
             t[: len(idx)] = t[idx]
         self.lanes.status[len(idx) : n] = EMPTY
-        if self.tail_chunk is not None and running <= self.tail_chunk:
+        if self.tail_chunk is not None and self.chunk != self.tail_chunk and running <= self.tail_chunk:
+            self.tail_lanes = running
             self.chunk = self.tail_chunk
             self.chunks = [[t[: self.chunk] for t in self.lanes.tensors()]]
         self.active = max(1, math.ceil(running / self.chunk))
@@ -315,7 +317,7 @@ class _Runner:
         assert self.acc.complete, "every batch must have folded once all photons finished"
         info = {
             "photons": self.n_launch, "lanes": len(self.lanes.status), "lane_steps": self.steps, "photon_steps": self.photon_steps,
-            "vertices": self.vertices, "elapsed_s": time.perf_counter() - t0,
+            "vertices": self.vertices, "tail_lanes": self.tail_lanes, "elapsed_s": time.perf_counter() - t0,
             "engine": "compiled" if self.compiled else "eager", "torch": torch.__version__,
         }  # fmt: skip
         return ShardTally(-1, self.acc.stats, self.acc.n_sum, self.acc.nn_sum, self.acc.k, info)
