@@ -15,7 +15,6 @@ the first process) and keeps it for every shard it runs.
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import resource
 import threading
 import time

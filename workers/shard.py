@@ -24,7 +24,7 @@ from .connections import ConnectionGeometry, connection_function
 from .optics import fresnel_dielectric, incident_refracted_direction, refracted_cos
 from .rng import photon_words, stream_key, to_i32
 from .tally import BatchAccumulator, ShardTally
-from .walk import ABSORBED, EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, WalkParams, compile_enabled, refill_function, step_function
+from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, WalkParams, compile_enabled, refill_function, step_function
 
 __all__ = ["run_shard", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
 

@@ -5,8 +5,6 @@ from __future__ import annotations
 import re
 import socket
 
-import pytest
-
 from service.datasets import DatasetStorage
 from service.store import JobStore
 from tests.api.conftest import AUTH, TINY_SPEC
