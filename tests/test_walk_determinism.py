@@ -160,19 +160,24 @@ print(json.dumps(out))
 """
 
 
+def _run_compiled(script: str, spec) -> dict:
+    """Run script (which prints one JSON line last) with BSSRDF_COMPILE=1 in a fresh process."""
+    env = dict(os.environ, BSSRDF_COMPILE="1")
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, "-c", script, spec.model_dump_json()],
+        cwd=root, env=env, capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 @pytest.mark.slow
 def test_compiled_walk_is_deterministic_and_agrees_with_eager(walk_spec, walk_stats):
     """BSSRDF_COMPILE=1 in a fresh process: bitwise the same for 1 and 2 torch threads, and the
     same physics as the eager walk within error bars (not bitwise: fused kernels round differently)."""
     spec = walk_spec(**dict(SPEC, incidence_deg=[40.0], shards=1, batches_per_shard=16, photons=2048))
-    env = dict(os.environ, BSSRDF_COMPILE="1")
-    root = Path(__file__).resolve().parents[1]
-    proc = subprocess.run(
-        [sys.executable, "-c", _COMPILED_SCRIPT, spec.model_dump_json()],
-        cwd=root, env=env, capture_output=True, text=True, timeout=900,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    runs = json.loads(proc.stdout.strip().splitlines()[-1])
+    runs = _run_compiled(_COMPILED_SCRIPT, spec)
     one, two = runs["1"], runs["2"]
     assert one["engine"] == two["engine"] == "compiled"
     assert one["digest"] == two["digest"], "compiled walk: 1 and 2 torch threads differ"
@@ -210,18 +215,10 @@ def test_compiled_exit_walk_with_its_tail_chunk_agrees_with_eager(walk_stats):
     and the absorbed power agree within error bars.  The medium is the benchmark's M2, whose
     kernels the benchmark has usually compiled already."""
     from workers.bench import _spec
-    from workers.merge import merge
 
     base = _spec("M2", "exits", 200_000).model_copy(update={"batches_per_shard": 64})
     compiled_spec = base.model_copy(update={"seed": base.seed + 1})
-    env = dict(os.environ, BSSRDF_COMPILE="1")
-    root = Path(__file__).resolve().parents[1]
-    proc = subprocess.run(
-        [sys.executable, "-c", _COMPILED_EXITS_SCRIPT, compiled_spec.model_dump_json()],
-        cwd=root, env=env, capture_output=True, text=True, timeout=900,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    got = _run_compiled(_COMPILED_EXITS_SCRIPT, compiled_spec)
     assert got["engine"] == "compiled"
     assert got["tail_lanes"] and 0 < got["tail_lanes"] <= 2048, "the tail chunk must have run"
     assert got["n_sum"] == 200_000 and got["k"] == 64

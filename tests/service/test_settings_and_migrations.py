@@ -25,23 +25,30 @@ def test_settings_defaults_and_env(monkeypatch, tmp_path):
         Settings(lease_seconds=5, heartbeat_seconds=6)
 
 
-def test_migrations_are_idempotent_and_concurrent(db_url):
+def _open_concurrently(url: str, n: int = 4) -> list[Exception]:
+    """Open (and so migrate) the store at url from n threads at once; the errors raised."""
     from service.store import JobStore
 
-    errors = []
+    errors: list[Exception] = []
 
     def open_store():
         try:
-            JobStore(db_url).dispose()
-        except Exception as exc:  # pragma: no cover - reported below
+            JobStore(url).dispose()
+        except Exception as exc:  # pragma: no cover - reported by the caller
             errors.append(exc)
 
-    threads = [threading.Thread(target=open_store) for _ in range(4)]
+    threads = [threading.Thread(target=open_store) for _ in range(n)]
     for t in threads:
         t.start()
     for t in threads:
         t.join(60)
-    assert not errors
+    return errors
+
+
+def test_migrations_are_idempotent_and_concurrent(db_url):
+    from service.store import JobStore
+
+    assert not _open_concurrently(db_url)
     store = JobStore(db_url)
     store.migrate()
     with store.engine.connect() as conn:
@@ -55,23 +62,8 @@ def test_many_openers_of_a_new_sqlite_store(tmp_path):
     """Four threads creating the same new SQLite store at once, 50 times over: the switch of a
     new file to WAL reports concurrent openers as locked without waiting (it failed about one
     start in twenty before it was retried)."""
-    from service.store import JobStore
-
     for round_ in range(50):
-        url = f"sqlite:///{tmp_path}/jobs-{round_}.sqlite"
-        errors = []
-
-        def open_store(url=url, errors=errors):
-            try:
-                JobStore(url).dispose()
-            except Exception as exc:  # pragma: no cover - reported below
-                errors.append(exc)
-
-        threads = [threading.Thread(target=open_store) for _ in range(4)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(60)
+        errors = _open_concurrently(f"sqlite:///{tmp_path}/jobs-{round_}.sqlite")
         assert not errors, f"round {round_}: {errors}"
 
 
