@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 import torch
 
+from schema import uniform_edges
 from tests.stats import assert_chi2
-from workers.binning import TWO_PI, BinLayout, outgoing_azimuth, uniform_index, wrap_angle
+from workers.binning import TWO_PI, BinLayout, _edge_function, edge_index, outgoing_azimuth, uniform_index, wrap_angle
 
 # Two channels with different radial edges (mm), same bin count.
 RADIAL = np.array(
@@ -167,6 +168,30 @@ def test_cos_index_at_exact_edges(n):
     assert got == list(range(n)), f"cos edges {lay.cos_o[:-1].tolist()} -> bins {got}"
     assert lay.cos_index(torch.tensor([0.0, 1.0])).tolist() == [0, n - 1]
     assert lay.cos_index(torch.tensor([1.0], dtype=torch.float32)).tolist() == [n - 1]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("hi", [1.0, TWO_PI, 0.3, 7.0])
+def test_computed_uniform_edges_are_the_stored_edges(hi, dtype):
+    """The edges uniform_index computes from lo = 0 are bitwise those of schema.uniform_edges
+    (numpy's linspace), for every count up to 400."""
+    for count in range(1, 401):
+        stored = torch.from_numpy(uniform_edges(0.0, hi, count)).to(dtype)
+        computed = _edge_function(0.0, hi, count, dtype)(torch.arange(count + 1))
+        assert torch.equal(computed, stored), (hi, count)
+
+
+@pytest.mark.parametrize("lo,hi", [(0.0, 1.0), (0.0, TWO_PI), (-1.0, 2.5)])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+def test_uniform_index_is_the_edge_lookup(lo, hi, dtype):
+    """uniform_index agrees with the searched lookup edge_index on the edges, one ulp either side
+    of them and random values, for many counts."""
+    gen = torch.Generator().manual_seed(3)
+    for count in (1, 2, 3, 7, 8, 10, 36, 100):
+        edges = torch.from_numpy(uniform_edges(lo, hi, count)).to(dtype)
+        v = torch.cat((edges, torch.nextafter(edges, edges - 1), torch.nextafter(edges, edges + 1),
+                       lo + (hi - lo) * torch.rand(2000, generator=gen, dtype=dtype)))  # fmt: skip
+        assert torch.equal(uniform_index(v, lo, hi, count), edge_index(v, edges)), count
 
 
 def test_uniform_index_interior_and_clamping():

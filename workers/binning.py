@@ -58,11 +58,30 @@ def uniform_index(value: torch.Tensor, lo: float, hi: float, count: int) -> torc
     (torch.bucketize does not fuse into compiled kernels).  Out-of-range values are clamped into
     the end bins; the closed upper end belongs to the last bin.
     """
-    edges = _uniform_edges(float(lo), float(hi), int(count)).to(value.dtype)
+    edge = _edge_function(float(lo), float(hi), int(count), value.dtype)
     k = torch.clamp(torch.floor((value - lo) * (count / (hi - lo))).to(torch.int64), 0, count - 1)
-    k = torch.where((value < edges[k]) & (k > 0), k - 1, k)
-    k = torch.where((value >= edges[k + 1]) & (k < count - 1), k + 1, k)
+    k = torch.where((value < edge(k)) & (k > 0), k - 1, k)
+    k = torch.where((value >= edge(k + 1)) & (k < count - 1), k + 1, k)
     return k
+
+
+def _edge_function(lo: float, hi: float, count: int, dtype: torch.dtype):
+    """k -> edges[k] of :func:`_uniform_edges` (in dtype) for an index tensor k in [0, count].
+
+    From lo = 0 (every axis of the tables) the edges are computed, not looked up: numpy's
+    linspace forms edge k < count as k * step, step = (hi - lo) / count, in float64 (plus lo = 0,
+    which changes nothing), and sets the last edge to hi; the same float64 product here gives the
+    same value (tested), and a compiled kernel needs no gather.  Otherwise: a table lookup.
+    """
+    if lo == 0.0:
+        step = (hi - lo) / count
+
+        def edge(k: torch.Tensor) -> torch.Tensor:
+            return torch.where(k >= count, hi, k.to(torch.float64) * step).to(dtype)
+
+        return edge
+    edges = _uniform_edges(lo, hi, count).to(dtype)
+    return lambda k: edges[k]
 
 
 def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:

@@ -45,7 +45,7 @@ __all__ = ["GRAPH_MODULES", "artifact_key", "cache_dir", "compile_kernel", "sour
 log = logging.getLogger(__name__)
 
 # Modules of this package whose code ends up in a compiled graph (tests check the import closure).
-GRAPH_MODULES = ("walk", "connections", "optics", "rng", "binning", "conventions")
+GRAPH_MODULES = ("walk", "connections", "harvest", "optics", "rng", "binning", "conventions")
 
 _compile_lock = threading.Lock()  # one compile at a time per process (threads sharing a kernel)
 
@@ -94,18 +94,39 @@ def artifact_key(name: str, constants: Any, args: tuple) -> str:
     return hashlib.sha256(repr(parts).encode()).hexdigest()
 
 
+def _signature(v: Any) -> Any:
+    """What a compiled variant's guards check of an argument, cheaply: dtype, shape, stride and
+    device of tensors, recursively through lists and dataclasses, and the values of scalars.
+    (:func:`_describe` covers the same for the artifact key; this one runs on every call.)"""
+    if isinstance(v, torch.Tensor):
+        return (v.dtype, v.shape, v.stride(), v.is_cpu)
+    if isinstance(v, (list, tuple)):
+        return tuple(map(_signature, v))
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return (type(v), tuple(_signature(getattr(v, f.name)) for f in dataclasses.fields(v)))
+    return (type(v), v)
+
+
 class _Kernel:
     """A function compiled on first call: loaded from its artifact, or compiled and saved.
 
     Each variant is specialised on the arguments it was first called with; a call whose
-    arguments fail every variant's guards obtains one more.
+    arguments fail every variant's guards obtains one more.  Once arguments of a given
+    :func:`_signature` have passed a variant's guards, later calls with that signature go to the
+    variant's compiled function directly: the guard evaluation costs ~40 us a call, as much as
+    a short kernel.
     """
 
     def __init__(self, fn: Callable, name: str, constants: Any):
         self.fn, self.name, self.constants = fn, name, constants
         self.variants: list[Callable] = []
+        self.direct: dict[Any, Callable] = {}
 
     def __call__(self, *args):
+        key = (_signature(args), torch.is_grad_enabled())
+        direct = self.direct.get(key)
+        if direct is not None:
+            return direct(*args)
         variants = self.variants
         for i in range(len(variants) - 1, -1, -1):
             try:
@@ -116,11 +137,21 @@ class _Kernel:
                 continue
             if i != len(variants) - 1:  # most recently used last: tried first next time
                 self.variants = [*variants[:i], *variants[i + 1 :], variants[i]]
+            self._remember(key, variants[i])
             return out
         with _compile_lock:
             if self.variants is variants:  # no other thread added one meanwhile
                 self.variants = [*variants, self._obtain(args)]
-        return self.variants[-1](*args)
+        out = self.variants[-1](*args)
+        self._remember(key, self.variants[-1])
+        return out
+
+    def _remember(self, key: Any, variant: Callable) -> None:
+        """Send calls with this signature straight to the variant's compiled function (an
+        artifact's; a plain torch.compile function keeps its own guard dispatch)."""
+        fn = getattr(variant, "fn", None)
+        if callable(fn) and hasattr(variant, "guard_check"):
+            self.direct[key] = fn
 
     def _obtain(self, args: tuple) -> Callable:
         rng.native_wide_multiply()  # decided outside the trace (the traced code only reads it)

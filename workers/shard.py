@@ -19,12 +19,13 @@ import torch
 
 from schema import SimulationSpec
 
-from .binning import BinLayout, outgoing_azimuth, wrap_angle
+from .binning import BinLayout
 from .connections import ConnectionGeometry, connection_function
-from .optics import fresnel_dielectric, incident_refracted_direction, refracted_cos
+from .harvest import ExitBins, exit_function, finish_function
+from .optics import fresnel_dielectric, incident_refracted_direction
 from .rng import photon_words, stream_key, to_i32
 from .tally import BatchAccumulator, ShardTally
-from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, WalkParams, compile_enabled, refill_function, step_function
+from .walk import EMPTY, EXITED, RUNNING, ConfigTable, Lanes, WalkParams, compile_enabled, step_function
 
 __all__ = ["run_shard", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
 
@@ -36,6 +37,7 @@ TAIL_DIVISOR = 8  # exit walk: the last photons of a shard run in chunks of 1/TA
 PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
 EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
+EXIT_BLOCK = 1 << 12  # exit events per call of the compiled exit lookup (a harvest of M2 has ~7500)
 HARVEST_DIVISOR = 8  # harvest once 1/HARVEST_DIVISOR of the lanes has finished (4 and 32 ran M1 slower here)
 
 
@@ -118,8 +120,8 @@ class _Runner:
         self.connect = "connections" in self.estimators
         self.chunk = CONNECT_CHUNK if self.connect else CHUNK if self.compiled else EAGER_CHUNK
         self.lanes = Lanes.empty(chunk_count(self.n_launch, self.chunk) * self.chunk)
-        tensors = self.lanes.tensors()
-        self.chunks = [[t[a : a + self.chunk] for t in tensors] for a in range(0, len(self.lanes.status), self.chunk)]
+        self.lanes_list = self.lanes.tensors()
+        self.chunks = [[t[a : a + self.chunk] for t in self.lanes_list] for a in range(0, len(self.lanes.status), self.chunk)]
         self.active = len(self.chunks)  # chunks [0, active) hold every running lane
         # A step costs the same for idle lanes: a shard's last photons, the longest paths, are
         # stepped in one short chunk (compiled: a second shape) once they fit.  Not with
@@ -134,15 +136,21 @@ class _Runner:
         )  # fmt: skip
         n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
         self.step = step_function(self.params, n_steps, self.connect, self.compiled)
-        self.refill_fn = refill_function(self.compiled)
+        self.finish_fn = finish_function(self.compiled)
         self.connect_fn = connection_function(self.compiled)
         self.sigma_t = torch.tensor(self.cfgs.sigma_t, dtype=torch.float64)
-        edges_opt = torch.tensor(self.layout.radial_mm[[self.cfgs.channel_of(c) for c in range(self.cfgs.n)]]) * self.sigma_t[:, None]
+        radial_mm = torch.from_numpy(self.layout.radial_mm[[self.cfgs.channel_of(c) for c in range(self.cfgs.n)]])  # [cfg, n_r + 1]
+        edges_opt = radial_mm * self.sigma_t[:, None]
         self.geo = ConnectionGeometry(
             r_lo=edges_opt[:, :-1].to(torch.float32).contiguous(), r_hi=edges_opt[:, 1:].to(torch.float32).contiguous(),
             n_theta=self.layout.n_theta, n_cos=self.layout.n_cos, n_phi=self.layout.n_phi, eta=self.cfgs.eta,
         )  # fmt: skip
-        self.channel_of_cfg = torch.tensor([self.cfgs.channel_of(c) for c in range(self.cfgs.n)])
+        self.tally_exit_events = "exits" in self.estimators
+        self.exit_fn = exit_function(self.compiled)
+        self.exit_bins = ExitBins(
+            radial_mm=radial_mm, sigma_t=self.sigma_t, batch_starts=torch.from_numpy(self.acc.starts),
+            n_theta=self.layout.n_theta, n_cos=self.layout.n_cos, n_phi=self.layout.n_phi, inv_eta=self.params.inv_eta,
+        )  # fmt: skip
         self.vertex_buf: list[list[torch.Tensor]] = []
         self.vertex_count = 0
         self.steps = 0  # calls x steps per call
@@ -150,17 +158,18 @@ class _Runner:
         self.vertices = 0
 
     # -- lanes --------------------------------------------------------------------------------
-    def refill(self) -> int:
-        """Launch the next photons into the lanes not running, in lane order; returns how many."""
-        n0 = self.next_launch
-        for chunk in self.chunks[: self.active]:
-            if self.next_launch == self.n_launch:
-                break
-            free = self.chunk - int((chunk[12] == RUNNING).sum())  # index 12: status
-            launch = torch.tensor([self.start, self.next_launch, self.n_launch, self.cfgs.n], dtype=torch.int64)
-            self.refill_fn(chunk, self.table_tensors, launch)
-            self.next_launch += min(free, self.n_launch - self.next_launch)
-        return self.next_launch - n0
+    def finish_and_refill(self) -> tuple[int, int]:
+        """Record the finished photons (walk totals; their exits must be tallied already) and
+        launch the next photons into the lanes not running, in lane order; returns (photons
+        finished, photons launched).  One pass over all the lanes (one compiled shape per lane
+        count): in the tail, where only the first chunk runs, the rest are EMPTY and cost little."""
+        launch = torch.tensor([self.start, self.next_launch, self.n_launch, self.cfgs.n], dtype=torch.int64)
+        key, absorbed, truncated, n_free, steps = self.finish_fn(self.lanes_list, self.table_tensors, launch, self.exit_bins.batch_starts)
+        launched = min(int(n_free), self.n_launch - self.next_launch)
+        self.next_launch += launched
+        self.photon_steps += int(steps)
+        finished = self.acc.finish_photons(key.numpy(), absorbed.numpy(), truncated.numpy()) if int(steps) else 0
+        return finished, launched
 
     def shrinkable(self, running: int) -> bool:
         """Whether compact() would step fewer lanes: nothing is left to launch and the running
@@ -179,56 +188,42 @@ class _Runner:
             return
         n = self.active * self.chunk
         idx = torch.nonzero(self.lanes.status[:n] == RUNNING).squeeze(1)
-        for t in self.lanes.tensors():
+        for t in self.lanes_list:
             t[: len(idx)] = t[idx]
         self.lanes.status[len(idx) : n] = EMPTY
         if self.tail_chunk is not None and self.chunk != self.tail_chunk and running <= self.tail_chunk:
             self.tail_lanes = running
             self.chunk = self.tail_chunk
-            self.chunks = [[t[: self.chunk] for t in self.lanes.tensors()]]
+            self.chunks = [[t[: self.chunk] for t in self.lanes_list]]
         self.active = max(1, math.ceil(running / self.chunk))
 
     def harvest(self, running: int) -> int:
         """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
-        st = self.lanes.status
-        done = torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1)
-        L = self.lanes
-        status = st[done]
-        exited = status == EXITED
-        if "exits" in self.estimators and bool(exited.any()):
-            self.tally_exits(done[exited])
-        photon = L.photon[done].numpy()
-        self.photon_steps += int(L.step[done].sum())
-        truncated = torch.where(status == TRUNCATED, L.w[done], 0.0).to(torch.float64).numpy()
-        absorbed = L.absorbed[done].to(torch.float64).numpy()
-        self.acc.finish_photons(photon, L.cfg[done].numpy(), absorbed, truncated)
+        if self.tally_exit_events:
+            st = self.lanes.status[: self.active * self.chunk]
+            self.tally_exits(torch.nonzero(st == EXITED).squeeze(1))
+        finished, launched = self.finish_and_refill()
         if self.acc.ready:
             self.flush_vertices(force=True)  # a batch folds only after all its vertices are tallied
             self.acc.fold_ready()
         if self.progress is not None:
-            self.progress(len(done))
-        st[done] = EMPTY  # harvested: free for a new photon, never tallied twice
-        running += self.refill()
+            self.progress(finished)
+        running += launched
         self.compact(running)
         return running
 
     # -- exit estimator -------------------------------------------------------------------------
     def tally_exits(self, idx: torch.Tensor) -> None:
-        L = self.lanes
-        cfg = L.cfg[idx]
-        x, y = L.x[idx].double(), L.y[idx].double()
-        ux, uy, uz = L.ux[idx].double(), L.uy[idx].double(), L.uz[idx].double()
-        r_mm = torch.sqrt(x * x + y * y) / self.sigma_t[cfg]
-        ir = self.layout.radial_index(r_mm, self.channel_of_cfg[cfg])
-        # One theta_s bin (normal incidence) needs no angle: every event is in bin 0.
-        it = self.layout.theta_index(wrap_angle(torch.atan2(y, x))) if self.layout.n_theta > 1 else torch.zeros_like(cfg)
-        cos_o = refracted_cos(uz, self.params.inv_eta)
-        ic = self.layout.cos_index(cos_o)
-        ip = self.layout.phi_index(outgoing_azimuth(x, y, ux, uy))
-        comp = (L.nscat[idx] >= 2).to(torch.int64)
-        w = L.w[idx].double()
-        flat = self.flat_index(cfg, comp, ir * self.layout.n_theta + it, ic * self.layout.n_phi + ip)
-        self.acc.add_hist("exits", self.acc.batch_of(L.photon[idx].numpy()), flat.numpy(), w.numpy(), (w / cos_o).numpy())
+        """Tally the exit events of lanes idx (in lane order), EXIT_BLOCK at a time: the compiled
+        lookup has one static shape, so the last block is padded with its first lane and cut."""
+        n = len(idx)
+        for a in range(0, n, EXIT_BLOCK):
+            block = idx[a : a + EXIT_BLOCK]
+            m = len(block)
+            if m < EXIT_BLOCK and self.compiled:
+                block = torch.cat((block, block[:1].expand(EXIT_BLOCK - m)))
+            flat, batch, g, s = (v[:m].numpy() for v in self.exit_fn(block, self.lanes_list, self.exit_bins))
+            self.acc.add_hist("exits", batch, flat, g, s)
 
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
@@ -297,7 +292,7 @@ class _Runner:
             return self._run(t0)
 
     def _run(self, t0: float) -> ShardTally:
-        running = self.refill()
+        running = self.finish_and_refill()[1]
         n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
         # Harvesting costs a pass over the lanes plus Python work: wait until an eighth of the
         # lanes has finished (or none runs) so the cost is spread over many photons.

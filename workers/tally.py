@@ -83,18 +83,25 @@ class BatchAccumulator:
             arrays[f"{estimator}/G"] += np.bincount(f, weights=gw, minlength=self.hist_size)
             arrays[f"{estimator}/S"] += np.bincount(f, weights=sw, minlength=self.hist_size)
 
-    def finish_photons(self, photon: np.ndarray, cfg: np.ndarray, absorbed: np.ndarray, truncated: np.ndarray) -> None:
-        """Record finished photons (their absorbed and truncated weights).
+    def finish_photons(self, key: np.ndarray, absorbed: np.ndarray, truncated: np.ndarray) -> int:
+        """Record finished photons and return how many: key = batch * n_cfg + cfg for each (any other value from
+        n_batches * n_cfg up marks an entry that is not a finished photon), with its absorbed and
+        truncated weights.
 
         Complete batches are folded by :meth:`fold_ready`, which the caller invokes once every
         contribution of those photons has been added (connections are tallied in chunks).
         """
-        for b, sel in _groups(self.batch_of(photon)):
-            c, a, t = (cfg, absorbed, truncated) if sel is None else (cfg[sel], absorbed[sel], truncated[sel])
-            arrays = self._batch(b)
-            arrays["absorbed"] += np.bincount(c, weights=a, minlength=self.n_cfg)
-            arrays["truncated"] += np.bincount(c, weights=t, minlength=self.n_cfg)
-            self.remaining[b] -= len(c)
+        n = len(self.sizes) * self.n_cfg
+        counts = np.bincount(key, minlength=n)[:n].reshape(-1, self.n_cfg)
+        ab = np.bincount(key, weights=absorbed, minlength=n)[:n].reshape(-1, self.n_cfg)
+        tr = np.bincount(key, weights=truncated, minlength=n)[:n].reshape(-1, self.n_cfg)
+        per_batch = counts.sum(axis=1)
+        for b in np.flatnonzero(per_batch):
+            arrays = self._batch(int(b))
+            arrays["absorbed"] += ab[b]
+            arrays["truncated"] += tr[b]
+            self.remaining[b] -= int(per_batch[b])
+        return int(per_batch.sum())
 
     @property
     def ready(self) -> bool:

@@ -4,7 +4,7 @@ A fixed array of *lanes* holds photons in flight.  :func:`walk_step` advances ev
 by one interaction (fly, hit the boundary or collide, Fresnel, absorb / roulette, scatter) with
 masks and no Python branching on values, so torch.compile fuses it into a few passes over memory;
 finished lanes keep their final state until the shard runner harvests them and refills the lane
-with the next photon (:meth:`Lanes.refill`).  All lengths are optical (sigma_t = 1, see
+with the next photon (:func:`refill_lanes`, run by :func:`workers.harvest.finish_and_refill`).  All lengths are optical (sigma_t = 1, see
 :mod:`workers.conventions`), so one walk serves every channel and incidence angle at once.
 
 Random numbers come from Philox keyed by (seed, configuration) with counter (photon, step): a
@@ -24,7 +24,7 @@ from .kernels import compile_kernel
 from .optics import fresnel_dielectric, sample_exponential, sample_hg, scatter_direction
 from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
 
-__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function", "refill_function", "compile_enabled"]
+__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function", "refill_lanes", "compile_enabled"]
 
 # Lane status codes (int32: an int8 status made inductor convert masks element by element).
 RUNNING = 0  # photon in flight
@@ -106,7 +106,7 @@ class ConfigTable:
     k1: torch.Tensor
 
     def tensors(self) -> list[torch.Tensor]:
-        """In the order :func:`_refill_inplace` expects."""
+        """In the order :func:`refill_lanes` expects."""
         return [self.albedo, self.g, self.w0, self.ux0, self.uz0, self.k0, self.k1]
 
 
@@ -201,7 +201,7 @@ def _step_inplace(lanes_tensors: list[torch.Tensor], p: WalkParams, n_steps: int
     return counts, vertex
 
 
-def _refill_inplace(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor], launch: torch.Tensor) -> None:
+def refill_lanes(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor], launch: torch.Tensor) -> None:
     """Start new photons in every lane that is not RUNNING, in lane order, in place.
 
     launch = int64 [start photon, next launch number, launches in the shard, configurations]:
@@ -301,9 +301,3 @@ def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bo
         return _step_inplace(lanes_tensors, p, n_steps, want_vertices)
 
     return compile_kernel(fn, "walk_step", (p, n_steps, want_vertices)) if compiled else fn
-
-
-@lru_cache(maxsize=None)
-def refill_function(compiled: bool):
-    """The (possibly compiled) in-place refill, :func:`_refill_inplace`."""
-    return compile_kernel(_refill_inplace, "walk_refill") if compiled else _refill_inplace

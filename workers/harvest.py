@@ -1,0 +1,153 @@
+"""The exit tally's bin lookup: one fused pass over a block of exit events.
+
+When the shard runner harvests the lanes whose photons exited, each exit event needs its flat
+histogram index [cfg, component, radial (n_r = beyond r_max), theta_s, cos_o, phi_o], its batch
+(the number of batch starts at or below its photon index, as ``np.searchsorted(starts, photon,
+"right") - 1``) and its contributions to G (the weight w) and to S (w / cos_o), cos_o being the
+cosine of the refracted direction outside.  :func:`exit_bins` computes them elementwise (no search,
+no sort) so that torch.compile fuses the whole lookup into one loop over the events: done as eager
+tensor operations it was a pass over the events per operation and cost, on short paths (M2), as
+much as the walk itself.  The lookups are exact with respect to the stored edges, in float64, as
+the tables' edges are:
+
+- radial: r = sqrt(x^2 + y^2) / sigma_t in mm, against the configuration's row of edges by a
+  branchless binary search (:func:`count_le`);
+- theta_s, cos_o, phi_o: uniform bins, :func:`workers.binning.uniform_index`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import torch
+
+from .binning import TWO_PI, outgoing_azimuth, uniform_index, wrap_angle
+from .kernels import compile_kernel
+from .optics import refracted_cos
+from .walk import EMPTY, RUNNING, TRUNCATED, refill_lanes
+__all__ = ["ExitBins", "batch_index", "count_le", "exit_bins", "exit_function", "finish_and_refill", "finish_function"]
+
+
+@dataclass(frozen=True)
+class ExitBins:
+    """What the exit lookup needs, per shard.
+
+    radial_mm: float64 [n_cfg, n_r + 1] radial edges of each configuration's channel (mm);
+    sigma_t: float64 [n_cfg] (1/mm, optical -> mm); batch_starts: int64 [n_batches], the first
+    photon index of each batch of the shard; n_theta, n_cos, n_phi: bin counts; inv_eta: 1/eta.
+    """
+
+    radial_mm: torch.Tensor
+    sigma_t: torch.Tensor
+    batch_starts: torch.Tensor
+    n_theta: int
+    n_cos: int
+    n_phi: int
+    inv_eta: float
+
+    @property
+    def n_r(self) -> int:
+        return self.radial_mm.shape[1] - 1
+
+
+def count_le(table: torch.Tensor, row: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+    """Number of entries of table[row] that are <= value (int64), each table row sorted ascending.
+
+    ``torch.searchsorted(table[row], value, right=True)`` elementwise, computed by binary lifting:
+    k grows by the powers of two from the largest <= m down to 1 while the entry it would cover,
+    table[row, k + step - 1], is still <= value.  A fixed number of gathers and no data-dependent
+    loop, so it compiles into the surrounding elementwise kernel.  A NaN value counts 0.
+    """
+    m = table.shape[1]
+    flat = table.reshape(-1)
+    base = row * m
+    k = torch.zeros_like(row)
+    step = 1 << (m.bit_length() - 1)
+    while step:
+        cand = k + step
+        entry = flat[base + torch.clamp(cand, max=m) - 1]
+        k = torch.where((cand <= m) & (entry <= value), cand, k)
+        step >>= 1
+    return k
+
+
+def batch_index(photon: torch.Tensor, batch_starts: torch.Tensor) -> torch.Tensor:
+    """Batch of each photon index: the number of batch starts at or below it, minus one.
+
+    The photon is never below the first start.  A few batches (the usual case) are counted by
+    comparisons, which vectorize; many by :func:`count_le`'s search.
+    """
+    if batch_starts.shape[0] <= 16:
+        return (photon[:, None] >= batch_starts[None, 1:]).sum(dim=1)
+    return count_le(batch_starts[None, :], torch.zeros_like(photon), photon) - 1
+
+
+def exit_bins(idx, x, y, ux, uy, uz, w, nscat, photon, cfg, bins: ExitBins):
+    """(flat, batch, G, S) of the exit events in lanes idx (int64 [E]); see the module docstring.
+
+    flat: int64 histogram index [cfg, component, radial, theta_s, cos_o, phi_o]; batch: int64
+    batch of the photon; G = w and S = w / cos_o float64.
+    """
+    cfg = cfg[idx]
+    xd, yd = x[idx].double(), y[idx].double()
+    r_mm = torch.sqrt(xd * xd + yd * yd) / bins.sigma_t[cfg]
+    ir = torch.clamp(count_le(bins.radial_mm, cfg, r_mm) - 1, 0, bins.n_r)
+    if bins.n_theta > 1:
+        it = uniform_index(wrap_angle(torch.atan2(yd, xd)), 0.0, TWO_PI, bins.n_theta)
+    else:  # one theta_s bin (normal incidence): no angle needed
+        it = torch.zeros_like(ir)
+    # An exit refracted out, so cos_o > 0; the clamp only keeps a padding lane finite.
+    cos_o = torch.clamp(refracted_cos(uz[idx].double(), bins.inv_eta), min=1e-300)
+    ic = uniform_index(cos_o, 0.0, 1.0, bins.n_cos)
+    ip = uniform_index(outgoing_azimuth(xd, yd, ux[idx].double(), uy[idx].double()), 0.0, TWO_PI, bins.n_phi)
+    comp = (nscat[idx] >= 2).to(torch.int64)
+    n_sp = (bins.n_r + 1) * bins.n_theta
+    n_dir = bins.n_cos * bins.n_phi
+    flat = ((cfg * 2 + comp) * n_sp + ir * bins.n_theta + it) * n_dir + ic * bins.n_phi + ip
+    batch = batch_index(photon[idx], bins.batch_starts)
+    wd = w[idx].double()
+    return flat, batch, wd, wd / cos_o
+
+
+def _exit_block(idx: torch.Tensor, lanes_tensors: list[torch.Tensor], bins: ExitBins):
+    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, *_rest) = lanes_tensors
+    return exit_bins(idx, x, y, ux, uy, uz, w, nscat, photon, cfg, bins)
+
+
+@lru_cache(maxsize=None)
+def exit_function(compiled: bool):
+    """:func:`exit_bins` over a block of lane indices into lanes in :class:`workers.walk.Lanes`
+    order, compiled for one block size (the caller pads) or eager."""
+    return compile_kernel(_exit_block, "exit_bins") if compiled else _exit_block
+
+
+def finish_and_refill(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor], launch: torch.Tensor, batch_starts: torch.Tensor):
+    """Record the finished lanes of a chunk and start new photons in every lane not running.
+
+    For each lane, before the refill: key = batch * n_cfg + cfg of a finished photon (EXITED,
+    ABSORBED or TRUNCATED), n_batches * n_cfg (a spare slot) for any other lane; its absorbed
+    weight and truncated weight (float64, 0 for lanes not finished).  Then the refill of
+    :func:`workers.walk.refill_lanes` with `launch`.  Returns (key, absorbed, truncated, n_free,
+    steps): n_free the lanes that were not running (the refill launched min(n_free, launches
+    left) photons), steps the interaction steps of the finished photons (int64 scalars).  Only
+    integer reductions: the float sums are left to the caller's ordered bincount, so results do
+    not depend on how the kernel is threaded.
+    """
+    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, *_rest) = lanes_tensors
+    n_cfg = launch[3]
+    done = (status != RUNNING) & (status != EMPTY)
+    batch = batch_index(photon, batch_starts)
+    key = torch.where(done, batch * n_cfg + cfg, batch_starts.shape[0] * n_cfg)
+    absorbed_d = torch.where(done, absorbed.double(), 0.0)
+    truncated = torch.where(status == TRUNCATED, w.double(), 0.0)
+    n_free = (status != RUNNING).sum()
+    steps = torch.where(done, step.to(torch.int64), 0).sum()
+    refill_lanes(lanes_tensors, table, launch)
+    return key, absorbed_d, truncated, n_free, steps
+
+
+@lru_cache(maxsize=None)
+def finish_function(compiled: bool):
+    """:func:`finish_and_refill`, compiled (static chunk shapes) or eager."""
+    return compile_kernel(finish_and_refill, "finish_refill") if compiled else finish_and_refill
