@@ -104,6 +104,28 @@ def test_kernel_is_saved_loaded_and_rebuilt(tmp_path, monkeypatch, caplog):
     assert saved[0].read_bytes() != b"not an artifact"
 
 
+def test_calls_with_a_seen_signature_skip_the_guards(tmp_path, monkeypatch):
+    """After arguments of one signature passed a variant's guards, calls with that signature go
+    straight to its compiled function; other shapes, dtypes or scalar values still go through the
+    guards to the variant that fits (or a new one), and each gets the right answer."""
+    monkeypatch.setenv("BSSRDF_KERNEL_CACHE", str(tmp_path))
+    k = compile_kernel(_axpy, "axpy", _Consts(1.5))
+    x, y = torch.arange(16.0), torch.full((16,), 2.0)
+    assert float(k([x, y], 3.0)) == float((x * 1.5 + y * 3.0).sum())
+    assert len(k.direct) == 1
+    calls = []
+    variant = k.variants[0]
+    check = variant.guard_check
+    monkeypatch.setattr(variant, "guard_check", lambda *a, **kw: calls.append(1) or check(*a, **kw))
+    assert float(k([y, x], 3.0)) == float((y * 1.5 + x * 3.0).sum())
+    assert calls == [], "a seen signature must not evaluate the guards again"
+    x2 = torch.arange(8.0)
+    assert float(k([x2, x2], 3.0)) == float((x2 * 4.5).sum())
+    assert float(k([x.double(), y.double()], 3.0)) == float((x * 1.5 + y * 3.0).sum())
+    assert len(k.variants) == 3 and len(k.direct) == 3
+    assert float(k([x, y], 3.0)) == float((x * 1.5 + y * 3.0).sum())
+
+
 def test_cache_can_be_switched_off(monkeypatch):
     monkeypatch.setenv("BSSRDF_KERNEL_CACHE", "off")
     assert kernels.cache_dir() is None
