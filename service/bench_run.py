@@ -57,7 +57,9 @@ def main(argv: list[str] | None = None) -> int:
         spec = root / "spec.json"
         warm = root / "warm.json"
         spec.write_text(json.dumps(_spec_doc(args.medium, args.estimator, args.photons, args.shards)))
-        warm.write_text(json.dumps(_spec_doc(args.medium, args.estimator, 20_000, 2)))
+        # Warm-up: two shards as large as the job's (up to 2e6 photons), so that every kernel
+        # shape the timed runs use (they depend on the lanes per shard) is compiled beforehand.
+        warm.write_text(json.dumps(_spec_doc(args.medium, args.estimator, 2 * min(args.photons // args.shards, 2_000_000), 2)))
         _timed(bssrdf + ["simulate", str(warm), "--out", str(root / "warm"), "--json", "--workers", "2"], root)
         runs = [
             ("simulate_1", ["simulate", str(spec), "--out", str(root / "s1"), "--json", "--workers", "1", "--no-progress"]),

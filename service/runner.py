@@ -20,7 +20,7 @@ from typing import Any
 
 from workers.cores import default_workers
 
-__all__ = ["add_parser", "main", "run_local", "start_workers", "stop_workers", "format_progress", "format_summary"]
+__all__ = ["add_parser", "main", "run_local", "start_workers", "signal_workers", "stop_workers", "format_progress", "format_summary"]
 
 _REPO = Path(__file__).resolve().parents[1]
 
@@ -45,11 +45,16 @@ def start_workers(n: int, db_url: str, storage_uri: str, log_dir: Path, *, lease
     return procs
 
 
-def stop_workers(procs: list[subprocess.Popen], timeout: float = 15.0) -> None:
-    """SIGTERM every worker (each releases its lease), then SIGKILL whoever is still there."""
+def signal_workers(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM every worker still running (each releases its lease and exits); does not wait."""
     for p in procs:
         if p.poll() is None:
             p.terminate()
+
+
+def stop_workers(procs: list[subprocess.Popen], timeout: float = 15.0) -> None:
+    """SIGTERM every worker (each releases its lease), then SIGKILL whoever is still there."""
+    signal_workers(procs)
     deadline = time.monotonic() + timeout
     for p in procs:
         try:
@@ -83,19 +88,22 @@ def format_summary(summary: dict[str, Any]) -> str:
 
 
 def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,
-              show_progress: bool = True, lease_seconds: float | None = None, poll: float = 0.5) -> dict[str, Any]:
+              show_progress: bool = True, lease_seconds: float | None = None, poll: float = 0.2) -> dict[str, Any]:
     """Submit ``spec``, run it with ``workers`` local processes, return the run report."""
-    from service.datasets import DatasetStorage, open_version
-    from service.store import TERMINAL_JOB_STATES, JobState, JobStore
-
-    store = JobStore(db_url)
-    storage = DatasetStorage(storage_uri)
-    job = store.submit(spec)
     t0 = time.monotonic()
+    # Workers first: their start-up (interpreter, torch, the compiled walk) overlaps importing
+    # the store, opening it and submitting here; until the job exists they poll for work.
     procs = start_workers(workers, db_url, storage_uri, data_dir / "logs", lease_seconds=lease_seconds)
     tty = show_progress and sys.stderr.isatty()
     last_line = 0.0
+    job = None
     try:
+        from service.datasets import DatasetStorage, open_version
+        from service.store import TERMINAL_JOB_STATES, JobState, JobStore
+
+        store = JobStore(db_url)
+        storage = DatasetStorage(storage_uri)
+        job = store.submit(spec)
         while True:
             p = store.progress(job.id)
             if show_progress and (tty or time.monotonic() - last_line > 10):
@@ -107,25 +115,31 @@ def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: i
             if all(proc.poll() is not None for proc in procs):
                 raise RuntimeError(f"every worker exited before job {job.id} ended; see {data_dir / 'logs'}")
             time.sleep(poll)
-    except KeyboardInterrupt:
-        store.cancel(job.id)
+    except BaseException as exc:
+        if isinstance(exc, KeyboardInterrupt) and job is not None:
+            store.cancel(job.id)  # Ctrl-C cancels the job
+        stop_workers(procs)
         raise
     finally:
         if tty:
             print(file=sys.stderr)
-        stop_workers(procs)
-    wall = time.monotonic() - t0
-    job = store.get_job(job.id)
-    report: dict[str, Any] = {"job_id": job.id, "state": str(job.state), "workers": workers, "wall_s": wall,
-                              "photons": p.photons_done, "photons_per_s": p.photons_done / wall if wall else None}
-    if job.state != JobState.SUCCEEDED:
-        report["error"] = job.error
+    # The job has ended: let the workers exit while the result is read back.
+    signal_workers(procs)
+    try:
+        wall = time.monotonic() - t0
+        job = store.get_job(job.id)
+        report: dict[str, Any] = {"job_id": job.id, "state": str(job.state), "workers": workers, "wall_s": wall,
+                                  "photons": p.photons_done, "photons_per_s": p.photons_done / wall if wall else None}
+        if job.state != JobState.SUCCEEDED:
+            report["error"] = job.error
+            return report
+        version = open_version(store, storage, job.dataset_name, job.dataset_version)
+        report.update(dataset=job.dataset_name, version=job.dataset_version, uri=version.record.uri,
+                      summary=version.read_json("summary.json"))
+        store.dispose()
         return report
-    version = open_version(store, storage, job.dataset_name, job.dataset_version)
-    report.update(dataset=job.dataset_name, version=job.dataset_version, uri=version.record.uri,
-                  summary=version.read_json("summary.json"))
-    store.dispose()
-    return report
+    finally:
+        stop_workers(procs)
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
