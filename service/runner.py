@@ -88,7 +88,7 @@ def format_summary(summary: dict[str, Any]) -> str:
 
 
 def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,
-              show_progress: bool = True, lease_seconds: float | None = None, poll: float = 0.2) -> dict[str, Any]:
+              show_progress: bool = True, lease_seconds: float | None = None, poll: float = 0.5) -> dict[str, Any]:
     """Submit ``spec``, run it with ``workers`` local processes, return the run report."""
     t0 = time.monotonic()
     # Workers first: their start-up (interpreter, torch, the compiled walk) overlaps importing
