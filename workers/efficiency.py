@@ -56,7 +56,8 @@ def efficiency(medium: str, photons_exits: int, photons_connections: int, radial
                 "component": comp, "r_lo_mm": edges[i], "r_hi_mm": edges[i + 1],
                 "Rd_r_exits": m_e[i] / area[i], "Rd_r_connections": m_c[i] / area[i],
                 "eff_exits": float(eff_e[i]), "eff_connections": float(eff_c[i]),
-                "ratio": float(eff_c[i] / eff_e[i]) if eff_e[i] > 0 else float("inf"),
+                # Undefined where an estimator saw no event (zero variance of a zero estimate).
+                "ratio": float(eff_c[i] / eff_e[i]) if np.isfinite(eff_c[i]) and np.isfinite(eff_e[i]) else float("nan"),
             })  # fmt: skip
     rows.append({"cpu_s_exits": cpu_e, "cpu_s_connections": cpu_c, "photons_exits": photons_exits, "photons_connections": photons_connections})
     return rows
