@@ -19,7 +19,7 @@ from schema import uniform_edges
 from workers.binning import BinLayout, outgoing_azimuth, wrap_angle
 from workers.harvest import ExitBins, batch_index, count_le, exit_bins
 from workers.optics import refracted_cos
-from workers.walk import EXITED
+from workers.walk import EMPTY, EXITED
 
 TWO_PI = 2.0 * math.pi
 
@@ -62,7 +62,7 @@ def _bins(eta: float = 1.3) -> tuple[ExitBins, BinLayout, np.ndarray]:
     return bins, layout, channel
 
 
-def _lanes(n: int, bins: ExitBins, channel: np.ndarray, seed: int = 5):
+def _lanes(n: int, bins: ExitBins, seed: int = 5):
     """Random lanes of every status; exit positions include points exactly on radial edges."""
     gen = torch.Generator().manual_seed(seed)
     f32 = lambda *shape: torch.rand(*shape, generator=gen, dtype=torch.float32)  # noqa: E731
@@ -115,7 +115,7 @@ def _exit_bins(lanes: dict, idx: torch.Tensor, bins: ExitBins):
 
 def test_exit_bins_match_the_reference_lookups():
     bins, layout, channel = _bins()
-    lanes = _lanes(20_000, bins, channel)
+    lanes = _lanes(20_000, bins)
     idx = torch.nonzero(lanes["status"] == EXITED).squeeze(1)
     assert len(idx) > 3000
     flat, batch, g, s = _exit_bins(lanes, idx, bins)
@@ -135,6 +135,50 @@ def test_exit_bins_match_the_reference_lookups():
     assert set(want_batch.tolist()) == {0, 1, 2, 3}
 
 
+def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
+    """Against a per-lane reference: the key (batch, configuration) and the absorbed / truncated
+    weights of exactly the finished lanes, the count of free lanes and the steps of finished
+    photons; then the refill: free lanes get launch numbers in lane order until the launches
+    run out, the rest become EMPTY, running lanes are untouched."""
+    from workers.bench import _spec
+    from workers.harvest import finish_and_refill
+    from workers.shard import build_configs
+    from workers.walk import RUNNING, TRUNCATED, Lanes
+
+    bins, _, _ = _bins()
+    n, n_cfg = 4000, 3
+    lanes = _lanes(n, bins, seed=17)
+    full = Lanes.empty(n)
+    for name, value in lanes.items():
+        getattr(full, name).copy_(value)
+    before = {name: value.clone() for name, value in lanes.items()}
+    st = before["status"]
+    done = (st != RUNNING) & (st != EMPTY)
+    free = st != RUNNING
+    table = build_configs(_spec("M2", "exits", 1000).model_copy(update={"incidence_deg": [0.0, 30.0, 60.0]})).table
+    start, nxt, left = 5000, 7, int(free.sum()) - 100  # the last 100 free lanes get nothing
+    launch = torch.tensor([start, nxt, nxt + left, n_cfg])
+    key, absorbed, truncated, n_free, steps = finish_and_refill(full.tensors(), table.tensors(), launch, bins.batch_starts)
+
+    batch = torch.from_numpy(np.searchsorted(np.array(STARTS), before["photon"].numpy(), side="right") - 1)
+    assert torch.equal(key, torch.where(done, batch * n_cfg + before["cfg"], len(STARTS) * n_cfg))
+    assert torch.equal(absorbed, torch.where(done, before["absorbed"].double(), 0.0))
+    assert torch.equal(truncated, torch.where(st == TRUNCATED, before["w"].double(), 0.0))
+    assert int(n_free) == int(free.sum()) and int(steps) == int(before["step"][done].sum())
+
+    q = nxt + torch.arange(int(free.sum()))
+    lane = torch.nonzero(free).squeeze(1)
+    new, idle = lane[q < nxt + left], lane[q >= nxt + left]
+    qn = q[q < nxt + left]
+    assert torch.equal(full.photon[new], start + qn // n_cfg) and torch.equal(full.cfg[new], qn % n_cfg)
+    assert bool((full.status[new] == RUNNING).all()) and bool((full.step[new] == 0).all())
+    assert torch.equal(full.w[new], table.w0[qn % n_cfg]) and torch.equal(full.uz[new], table.uz0[qn % n_cfg])
+    assert len(idle) == 100 and bool((full.status[idle] == EMPTY).all())
+    running = ~free
+    for name in ("x", "y", "uz", "w", "absorbed", "photon", "cfg", "step", "status"):
+        assert torch.equal(getattr(full, name)[running], before[name][running]), name
+
+
 _COMPILED_SCRIPT = """
 import json
 import torch
@@ -142,8 +186,8 @@ from tests.test_harvest import _bins, _lanes, _block
 from workers.walk import EXITED
 
 torch.set_num_threads(1)
-bins, _, channel = _bins()
-lanes = _lanes(6000, bins, channel, seed=13)
+bins, _, _ = _bins()
+lanes = _lanes(6000, bins, seed=13)
 idx = torch.nonzero(lanes["status"] == EXITED).squeeze(1)[:2048]
 eager = _block(lanes, idx, bins, compiled=False)
 compiled = _block(lanes, idx, bins, compiled=True)

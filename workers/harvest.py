@@ -1,4 +1,5 @@
-"""The exit tally's bin lookup: one fused pass over a block of exit events.
+"""The harvest of finished lanes, in compiled passes: the exit tally's bin lookup, and the walk
+totals recorded in the same pass as the refill.
 
 When the shard runner harvests the lanes whose photons exited, each exit event needs its flat
 histogram index [cfg, component, radial (n_r = beyond r_max), theta_s, cos_o, phi_o], its batch
@@ -13,7 +14,10 @@ the tables' edges are:
 - radial: r = sqrt(x^2 + y^2) / sigma_t in mm, against the configuration's row of edges by a
   branchless binary search (:func:`count_le`);
 - theta_s, cos_o, phi_o: uniform bins, :func:`workers.binning.uniform_index`.
-"""
+
+Every finished photon (exited, absorbed or truncated) is then recorded and its lane refilled by
+:func:`finish_and_refill`, one pass over the lanes: per lane a (batch, configuration) key and the
+absorbed and truncated weights, whose float sums the caller forms with an ordered bincount."""
 
 from __future__ import annotations
 
@@ -123,7 +127,7 @@ def exit_function(compiled: bool):
 
 
 def finish_and_refill(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor], launch: torch.Tensor, batch_starts: torch.Tensor):
-    """Record the finished lanes of a chunk and start new photons in every lane not running.
+    """Record the finished lanes and start new photons in every lane not running.
 
     For each lane, before the refill: key = batch * n_cfg + cfg of a finished photon (EXITED,
     ABSORBED or TRUNCATED), n_batches * n_cfg (a spare slot) for any other lane; its absorbed

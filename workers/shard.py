@@ -146,9 +146,10 @@ class _Runner:
             n_theta=self.layout.n_theta, n_cos=self.layout.n_cos, n_phi=self.layout.n_phi, eta=self.cfgs.eta,
         )  # fmt: skip
         self.tally_exit_events = "exits" in self.estimators
+        self.batch_starts = torch.from_numpy(self.acc.starts)  # first photon of each batch
         self.exit_fn = exit_function(self.compiled)
         self.exit_bins = ExitBins(
-            radial_mm=radial_mm, sigma_t=self.sigma_t, batch_starts=torch.from_numpy(self.acc.starts),
+            radial_mm=radial_mm, sigma_t=self.sigma_t, batch_starts=self.batch_starts,
             n_theta=self.layout.n_theta, n_cos=self.layout.n_cos, n_phi=self.layout.n_phi, inv_eta=self.params.inv_eta,
         )  # fmt: skip
         self.vertex_buf: list[list[torch.Tensor]] = []
@@ -164,7 +165,7 @@ class _Runner:
         finished, photons launched).  One pass over all the lanes (one compiled shape per lane
         count): in the tail, where only the first chunk runs, the rest are EMPTY and cost little."""
         launch = torch.tensor([self.start, self.next_launch, self.n_launch, self.cfgs.n], dtype=torch.int64)
-        key, absorbed, truncated, n_free, steps = self.finish_fn(self.lanes_list, self.table_tensors, launch, self.exit_bins.batch_starts)
+        key, absorbed, truncated, n_free, steps = self.finish_fn(self.lanes_list, self.table_tensors, launch, self.batch_starts)
         launched = min(int(n_free), self.n_launch - self.next_launch)
         self.next_launch += launched
         self.photon_steps += int(steps)
