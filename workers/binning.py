@@ -102,6 +102,9 @@ class BinLayout:
     """Edges of every bin axis; radial edges per channel in mm.
 
     radial_mm: float64 [n_channels, n_r + 1]; theta_s, cos_o, phi_o: float64 1-D edge arrays.
+    The lookups below search the stored edges (searchsorted / bucketize): the plain reference
+    that the walk's fused lookups (:func:`uniform_index`, :mod:`workers.harvest`) are tested
+    against, and a convenience for binning events outside the walk.
     """
 
     radial_mm: np.ndarray
@@ -143,16 +146,8 @@ class BinLayout:
         """Radial bin of r (mm) for each event's channel; n_r for r >= r_max (overflow)."""
         edges = torch.as_tensor(self.radial_mm, dtype=r_mm.dtype)
         # searchsorted(right) - 1 puts r in [edge_k, edge_k+1) into k; r >= r_max gives n_r.
-        # One search per distinct edge row (usually one: edges given in mm), not a gathered row
-        # per event.
-        if (self.radial_mm == self.radial_mm[:1]).all():
-            idx = torch.searchsorted(edges[0], r_mm, right=True)
-        else:
-            idx = torch.empty(r_mm.shape, dtype=torch.int64)
-            for c in torch.unique(channel).tolist():
-                sel = channel == c
-                idx[sel] = torch.searchsorted(edges[c], r_mm[sel], right=True)
-        return torch.clamp(idx - 1, 0, self.n_r)
+        idx = torch.searchsorted(edges[channel], r_mm.unsqueeze(-1), right=True).squeeze(-1) - 1
+        return torch.clamp(idx, 0, self.n_r)
 
     def theta_index(self, theta_s: torch.Tensor) -> torch.Tensor:
         """theta_s bin of an angle already wrapped into [0, 2 pi)."""

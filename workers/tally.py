@@ -84,9 +84,10 @@ class BatchAccumulator:
             arrays[f"{estimator}/S"] += np.bincount(f, weights=sw, minlength=self.hist_size)
 
     def finish_photons(self, key: np.ndarray, absorbed: np.ndarray, truncated: np.ndarray) -> int:
-        """Record finished photons and return how many: key = batch * n_cfg + cfg for each (any other value from
-        n_batches * n_cfg up marks an entry that is not a finished photon), with its absorbed and
-        truncated weights.
+        """Record finished photons; returns how many there were.
+
+        key = batch * n_cfg + cfg per entry (a value from n_batches * n_cfg up marks an entry that
+        is not a finished photon), with the photon's absorbed and truncated weights.
 
         Complete batches are folded by :meth:`fold_ready`, which the caller invokes once every
         contribution of those photons has been added (connections are tallied in chunks).
