@@ -17,7 +17,7 @@ SUBCOMMANDS = (
     "workers.simulate",  # simulate: in-process measurement
     "workers.bench",  # bench: walk throughput
     "service.runner",  # run: local job service end to end
-    "workers.loop",  # worker: claim, run, commit
+    "service.worker",  # worker: claim, run, commit
     "service.serve",  # serve: the HTTP API
     "service.client",  # submit, status, datasets
 )

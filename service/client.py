@@ -26,6 +26,9 @@ from urllib.parse import quote
 
 import httpx
 
+from service.runner import format_progress
+from workers.simulate import format_summary
+
 __all__ = ["ApiClient", "ApiError", "add_parser", "main", "format_error", "follow_job", "TERMINAL_STATES"]
 
 DEFAULT_API = "http://127.0.0.1:8000"
@@ -110,8 +113,6 @@ class ApiClient:
 # --- progress display ---
 def progress_line(job: dict[str, Any]) -> str:
     """The progress line of ``bssrdf run`` for a job document."""
-    from service.runner import format_progress
-
     p = job.get("progress") or {}
     fields = {"shards_done": 0, "shards_total": job.get("shards", 0), "shards_running": 0, "photons_done": 0,
               "rate_photons_per_s": None, "eta_s": None, "merge_state": "-", **p}
@@ -170,8 +171,6 @@ def report_outcome(client: ApiClient, job: dict[str, Any], *, as_json: bool = Fa
         print(json.dumps(dict(summary, job_id=job["id"], state=job["state"], dataset=job["dataset_name"],
                               version=job["dataset_version"]), sort_keys=True))
     else:
-        from workers.simulate import format_summary
-
         print(format_summary(summary))
         print(f"dataset {job['dataset_name']} version {job['dataset_version']}  (job {job['id']})")
     return 0
@@ -241,8 +240,6 @@ def _versions_text(items: list[dict[str, Any]]) -> str:
 
 
 def _version_text(v: dict[str, Any]) -> str:
-    from workers.simulate import format_summary
-
     lines = [format_summary(v["summary"]) if v.get("summary") else "(no summary)",
              f"dataset {v['name']} version {v['version']}  (job {v.get('job_id') or '-'})", "files:"]
     lines += [f"  {name:<18} {f.get('bytes') or '':>10}  sha256 {f['sha256']}" for name, f in sorted(v["files"].items())]

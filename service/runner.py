@@ -1,7 +1,7 @@
 """``bssrdf run SPEC.json``: the one-machine job on embedded defaults.
 
 Creates (or reuses) the local data directory with its SQLite job store and dataset storage,
-submits the job, starts N local worker processes (``python -m workers.loop``), shows progress
+submits the job, starts N local worker processes (``python -m service.worker``), shows progress
 (shards done / total, photons, rate, ETA) while they work, stops them, and prints the same summary
 as ``bssrdf simulate`` (read back from the stored, checksum-verified version) plus the dataset name
 and version. ``--json`` prints one JSON object instead. Ctrl-C cancels the job.
@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from workers.cores import default_workers
+from workers.simulate import format_summary  # torch-free: the walk is imported where it runs
 
 __all__ = ["add_parser", "main", "run_local", "start_workers", "signal_workers", "stop_workers", "format_progress", "format_summary"]
 
@@ -34,7 +35,7 @@ def start_workers(n: int, db_url: str, storage_uri: str, log_dir: Path, *, lease
     # One walk per core: without this, every worker's torch would use every core.
     env.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // n)))
     env.update(extra_env or {})
-    cmd = [sys.executable, "-m", "workers.loop", "--db", db_url, "--storage", storage_uri, "--poll-seconds", "0.2"]
+    cmd = [sys.executable, "-m", "service.worker", "--db", db_url, "--storage", storage_uri, "--poll-seconds", "0.2"]
     if lease_seconds:
         cmd += ["--lease-seconds", str(lease_seconds)]
     procs = []
@@ -80,13 +81,6 @@ def format_progress(p) -> str:
             f"photons {_si(p.photons_done)}  {_si(p.rate_photons_per_s)}/s  ETA {eta}  merge {p.merge_state}")
 
 
-def format_summary(summary: dict[str, Any]) -> str:
-    """The human-readable summary of ``bssrdf simulate`` (``workers.simulate.format_summary``)."""
-    from workers.simulate import format_summary as simulate_format
-
-    return simulate_format(summary)
-
-
 def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,
               show_progress: bool = True, lease_seconds: float | None = None, poll: float = 0.5) -> dict[str, Any]:
     """Submit ``spec``, run it with ``workers`` local processes, return the run report."""
@@ -98,6 +92,7 @@ def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: i
     last_line = 0.0
     job = None
     try:
+        # Deferred so that the workers' start-up overlaps these imports (measured: README, BENCHMARKS).
         from service.datasets import DatasetStorage, open_version
         from service.store import TERMINAL_JOB_STATES, JobState, JobStore
 

@@ -6,6 +6,7 @@ import hashlib
 import json
 import time
 
+from schema import parse_spec
 from service.datasets.metadata import build_metadata, metadata_bytes
 from service.datasets.storage import METADATA_FILE, DatasetStorage
 from service.store import JobStore, Lease, StoreError
@@ -26,7 +27,8 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease) -> in
     ``NAME/vN`` and commits the catalog row with the job's success. Staged files are deleted if
     anything fails, a lost lease included. Returns the version number.
     """
-    from schema import parse_spec
+    # Deferred, not a cycle: the merge imports torch (seconds), which the API process, importing
+    # this package for dataset reads, never needs.
     from workers.merge import merge
     from workers.output import summary, write_tables
     from workers.tally import ShardTally

@@ -102,7 +102,7 @@ def published(tmp_path_factory):
     """A real SQLite store and storage holding one succeeded job: ``tiny`` versions 1 and 2
     (run in-process by the real worker loop). Read-only for the tests that use it."""
     from schema import parse_spec
-    from workers.loop import Worker
+    from service.worker import Worker
 
     root = tmp_path_factory.mktemp("published")
     store = JobStore(f"sqlite:///{root / 'jobs.sqlite'}")

@@ -1,7 +1,7 @@
 """Real worker processes against PostgreSQL give the bytes of the in-process pipeline.
 
 ``run_shard`` for every shard, ``merge``, ``write_tables`` in this process is the reference (what
-``bssrdf simulate`` does). Three ``python -m workers.loop`` processes must publish a version whose
+``bssrdf simulate`` does). Three ``python -m service.worker`` processes must publish a version whose
 Parquet files are byte-identical, also when one of them is SIGKILLed in the middle of a shard
 (its lease expires after 3 s and another worker redoes the shard).
 """
@@ -18,7 +18,7 @@ import pytest
 from service.datasets import DatasetStorage, open_version
 from service.runner import start_workers, stop_workers
 from service.store import JobState, JobStore
-from tests.waiting import wait_for
+from tests.support.waiting import wait_for
 
 pytestmark = [pytest.mark.slow, pytest.mark.postgres]
 

@@ -25,7 +25,7 @@ def sqlite_url(tmp_path):
 
 
 def test_lost_lease_discards_the_shard(sqlite_url, tmp_path):
-    from workers.loop import Worker
+    from service.worker import Worker
 
     store = JobStore(sqlite_url)
     job = store.submit(tiny_spec("lost", photons=200, shards=1))
@@ -44,7 +44,7 @@ def test_sigterm_mid_shard_releases_the_lease_and_exits_cleanly(sqlite_url, tmp_
     env = {**os.environ, **ENGINE_ENV, "PYTHONPATH": str(REPO)}
     with open(log, "wb") as out:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "workers.loop", "--db", sqlite_url, "--storage", str(tmp_path / "data"),
+            [sys.executable, "-m", "service.worker", "--db", sqlite_url, "--storage", str(tmp_path / "data"),
              "--heartbeat-seconds", "0.2"], cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT,
         )
     try:

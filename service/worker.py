@@ -23,9 +23,13 @@ import sys
 import threading
 import time
 import uuid
-from typing import Any
 
 from sqlalchemy.exc import DBAPIError
+
+from schema import SimulationSpec, parse_spec
+from service.datasets import DatasetStorage, run_merge_task
+from service.settings import Settings
+from service.store import JobStore, Lease, LeaseLost, TaskKind
 
 __all__ = ["Worker", "JsonFormatter", "add_parser", "main", "configure_logging"]
 
@@ -39,7 +43,7 @@ class _Abandon(Exception):
 class _Heartbeat(threading.Thread):
     """Extends a lease every ``period`` seconds until stopped; sets ``lost`` if it was lost."""
 
-    def __init__(self, store, lease, lease_seconds: float, period: float, photons) -> None:
+    def __init__(self, store: JobStore, lease: Lease, lease_seconds: float, period: float, photons) -> None:
         super().__init__(name=f"heartbeat-{lease.task_id}", daemon=True)
         self.store, self.lease, self.lease_seconds, self.period = store, lease, lease_seconds, period
         self.photons = photons  # callable -> photons done so far
@@ -66,7 +70,7 @@ class Worker:
     """One worker process: claims tasks from a ``JobStore`` and writes datasets to a storage."""
 
     def __init__(
-        self, store, storage, *, worker_id: str | None = None, lease_seconds: float = 60.0,
+        self, store: JobStore, storage: DatasetStorage, *, worker_id: str | None = None, lease_seconds: float = 60.0,
         heartbeat_seconds: float | None = None, once: bool = False, max_tasks: int | None = None,
         poll_seconds: float = 1.0,
     ) -> None:
@@ -77,7 +81,7 @@ class Worker:
         self.once, self.max_tasks, self.poll_seconds = once, max_tasks, poll_seconds
         self.stopping = threading.Event()
         self.processed = 0
-        self._specs: dict[str, Any] = {}
+        self._specs: dict[str, SimulationSpec] = {}
 
     # --- run / loop / claim / process ---
     def run(self) -> int:
@@ -118,14 +122,12 @@ class Worker:
             self.processed += 1
         return self.processed
 
-    def claim(self):
+    def claim(self) -> Lease | None:
         """One lease or None."""
         return self.store.claim(self.worker_id, self.lease_seconds)
 
-    def process(self, lease) -> None:
+    def process(self, lease: Lease) -> None:
         """Run one leased task; every outcome is logged, none raises (except KeyboardInterrupt)."""
-        from service.store import LeaseLost, TaskKind
-
         fields = {"task": lease.task_id, "job": lease.job_id, "kind": str(lease.kind),
                   "shard": lease.shard_index, "attempt": lease.attempts, "token": lease.token}
         log.info("task claimed", extra=fields)
@@ -155,14 +157,14 @@ class Worker:
         finally:
             beat.stop()
 
-    def _spec(self, lease):
-        from schema import parse_spec
-
+    def _spec(self, lease: Lease) -> SimulationSpec:
         if lease.job_id not in self._specs:
             self._specs[lease.job_id] = parse_spec(json.loads(lease.spec_json))
         return self._specs[lease.job_id]
 
-    def _process_shard(self, lease, beat: _Heartbeat, photons: list[int], fields: dict) -> None:
+    def _process_shard(self, lease: Lease, beat: _Heartbeat, photons: list[int], fields: dict) -> None:
+        # Deferred, not a cycle: workers.shard imports torch (seconds), and building the `bssrdf`
+        # parser imports this module; only a process that runs a shard pays for it.
         from workers.shard import run_shard
 
         def progress(n: int) -> None:
@@ -180,9 +182,7 @@ class Worker:
         log.info("shard done", extra={**fields, "photons": tally.photons, "elapsed_s": round(tally.elapsed_s, 3),
                                       "payload_bytes": len(payload)})
 
-    def _process_merge(self, lease, beat: _Heartbeat, fields: dict) -> None:
-        from service.datasets import run_merge_task
-
+    def _process_merge(self, lease: Lease, beat: _Heartbeat, fields: dict) -> None:
         t0 = time.perf_counter()
         version = run_merge_task(self.store, self.storage, lease)
         spec = self._spec(lease)
@@ -246,10 +246,6 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run a worker with parsed arguments; returns the exit status."""
-    from service.datasets import DatasetStorage
-    from service.settings import Settings
-    from service.store import JobStore
-
     settings = Settings()
     configure_logging()
     # One worker process per core, one torch thread each: shards are independent, so processes
