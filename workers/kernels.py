@@ -39,6 +39,7 @@ from typing import Any, Callable
 import torch
 
 from . import rng
+from .engine import init_engine
 
 __all__ = ["GRAPH_MODULES", "artifact_key", "cache_dir", "compile_kernel", "source_digest"]
 
@@ -154,6 +155,7 @@ class _Kernel:
             self.direct[key] = fn
 
     def _obtain(self, args: tuple) -> Callable:
+        init_engine()  # the GIL-free binding template must be in place before inductor builds one
         rng.native_wide_multiply()  # decided outside the trace (the traced code only reads it)
         compiler = torch.compile(self.fn, fullgraph=True, dynamic=False)
         directory = cache_dir()

@@ -21,6 +21,7 @@ from schema import SimulationSpec
 
 from .binning import BinLayout
 from .connections import ConnectionGeometry, connection_function
+from .engine import init_engine
 from .harvest import ExitBins, exit_function, finish_function
 from .optics import fresnel_dielectric, incident_refracted_direction
 from .rng import photon_words, stream_key, to_i32
@@ -326,6 +327,7 @@ def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int
     the last call.  The statistics in the result do not depend on the machine, the thread count
     or when the shard runs; `info` carries timings and counters that do.
     """
+    init_engine()
     tally = _Runner(spec, shard_index, progress).run()
     tally.shard_index = shard_index
     return tally
