@@ -9,7 +9,8 @@ No torch and no web framework here: workers, the service and clients all import 
 Modules: :mod:`schema.spec` (SimulationSpec, load_spec), :mod:`schema.medium` (MediumSpec,
 ChannelOptics), :mod:`schema.presets` (Jensen et al. 2001 materials), :mod:`schema.bins`
 (BinSpec, edges), :mod:`schema.tables` (Arrow schemas, metadata keys), :mod:`schema.errors`,
-:mod:`schema.constraints` (range checks), :mod:`schema.export` (JSON Schema file).
+:mod:`schema.constraints` (range checks), :mod:`schema.names` (the name rule),
+:mod:`schema.version` (code version), :mod:`schema.export` (JSON Schema file).
 """
 
 from .bins import (
@@ -27,6 +28,7 @@ from .errors import ShardIndexError, SpecError, format_validation_error
 from .export import SPEC_SCHEMA_PATH, spec_json_schema_text, write_spec_json_schema
 from .medium import ChannelOptics, MediumSpec
 from .presets import PRESET_CHANNELS, PRESETS, Preset, get_preset
+from .names import NAME_MAX, NAME_PATTERN, InvalidName, check_name
 from .spec import MAX_INCIDENCE, MAX_PHOTONS, SimulationSpec, load_spec, parse_spec
 from .tables import (
     BINS_SCHEMA,
@@ -42,6 +44,7 @@ from .tables import (
     TABLE_SCHEMAS,
     table_metadata,
 )
+from .version import code_version
 
 __all__ = [
     # specs
@@ -61,6 +64,12 @@ __all__ = [
     "MAX_INCIDENCE",
     "MAX_TOTAL_BINS",
     "DEFAULT_MAX_MFP",
+    # names and provenance
+    "check_name",
+    "InvalidName",
+    "NAME_MAX",
+    "NAME_PATTERN",
+    "code_version",
     # presets
     "PRESETS",
     "PRESET_CHANNELS",

@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from pydantic_core import PydanticCustomError
 
 from .constraints import Interval, PerChannel
+from .names import CHANNEL_NAME_MAX, InvalidName, check_name
 from .presets import PRESET_CHANNELS, PRESETS, get_preset
 
 __all__ = ["ChannelOptics", "MediumSpec", "ETA_RANGE", "G_RANGE"]
@@ -44,7 +45,6 @@ def _coeff(what: str) -> Any:
 
 PerChannelG = Annotated[float | list[float], PerChannel(G_RANGE)]
 _PER_CHANNEL = ("sigma_a", "sigma_s", "sigma_s_reduced", "g")
-_NAME_CHARS = set("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._-")
 
 
 class ChannelOptics(BaseModel):
@@ -177,9 +177,10 @@ class MediumSpec(BaseModel):
         if len(set(names)) != len(names):
             raise _form_error("channel_names must be unique; received {names}", names=repr(names))
         for name in names:
-            if not 1 <= len(name) <= 32 or not set(name) <= _NAME_CHARS:
-                raise _form_error("channel_names entries must be 1..32 characters from "
-                                  "[A-Za-z0-9._-]; received {name}", name=repr(name))
+            try:
+                check_name(name, "channel_names entries", CHANNEL_NAME_MAX)
+            except InvalidName as exc:
+                raise _form_error("{problem}", problem=str(exc)) from None
         return list(names)
 
     def _check_extinction(self) -> None:

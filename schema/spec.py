@@ -35,6 +35,7 @@ from .bins import MAX_TOTAL_BINS, THETA_S_AUTO_OBLIQUE, TWO_PI, BinSpec, radial_
 from .constraints import Interval
 from .errors import ShardIndexError, SpecError
 from .medium import ChannelOptics, MediumSpec
+from .names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
 
 __all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE"]
 
@@ -44,18 +45,14 @@ MAX_PHOTONS = 2**40
 MAX_INCIDENCE = 32
 """Most incidence angles in one spec."""
 
-_NAME_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._-")
 _INCIDENCE = Interval(0, 90, hi_open=True, what="incidence angle [deg]")
 
 
 def _check_name(v: str) -> str:
-    if not 1 <= len(v) <= 100 or not set(v) <= _NAME_CHARS:
-        raise PydanticCustomError(
-            "bad_name",
-            "name must be 1..100 characters from [A-Za-z0-9._-]; received {value}",
-            {"value": repr(v)[:80]},
-        )
-    return v
+    try:
+        return check_name(v)
+    except InvalidName as exc:
+        raise PydanticCustomError("bad_name", str(exc).replace("{", "{{").replace("}", "}}")) from None
 
 
 class SimulationSpec(BaseModel):
@@ -64,8 +61,8 @@ class SimulationSpec(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     name: Annotated[str, AfterValidator(_check_name)] = Field(
-        description="Dataset name: 1..100 characters from [A-Za-z0-9._-].",
-        json_schema_extra={"pattern": "^[A-Za-z0-9._-]{1,100}$"},
+        description=f"Dataset name: {NAME_RULE.format(n=NAME_MAX)}.",
+        json_schema_extra={"pattern": NAME_PATTERN},
     )
     description: str | None = Field(None, max_length=2000, description="Free text for humans.")
     medium: MediumSpec

@@ -26,10 +26,11 @@ import pyarrow as pa
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
+from schema.names import InvalidName, check_name
 from service.store.errors import ChecksumMismatch, DatasetError
 from service.store.records import DatasetVersionRecord
 
-__all__ = ["DatasetStorage", "StagedVersion", "OpenVersion", "open_version", "sha256_file", "METADATA_FILE"]
+__all__ = ["DatasetStorage", "StagedVersion", "OpenVersion", "open_version", "expected_files", "verified_path", "sha256_file", "METADATA_FILE"]
 
 METADATA_FILE = "metadata.json"
 _CHUNK = 1 << 20
@@ -45,12 +46,10 @@ def sha256_file(fs: pafs.FileSystem, path: str) -> str:
 
 
 def _check_name(name: str) -> str:
-    ok = 1 <= len(name) <= 100 and all(c.isascii() and (c.isalnum() or c in "._-") for c in name)
-    if not ok or name.startswith("."):
-        raise DatasetError(
-            f"dataset name must be 1..100 characters from [A-Za-z0-9._-], not starting with '.'; received {name!r}"
-        )
-    return name
+    try:
+        return check_name(name, "dataset name")
+    except InvalidName as exc:
+        raise DatasetError(str(exc)) from None
 
 
 class DatasetStorage:
@@ -159,21 +158,28 @@ def open_version(store, storage: DatasetStorage, name: str, version: int | None 
     or different from what was published).
     """
     record = store.get_version(name, version)
-    files = dict(record.meta.get("files", {}))
-    expected = {name_: f["sha256"] for name_, f in files.items()}
-    expected[METADATA_FILE] = record.meta["metadata_sha256"]
-    paths = {}
-    for filename, digest in sorted(expected.items()):
-        path = f"{record.uri}/{filename}"
-        try:
-            actual = sha256_file(storage.fs, path)
-        except (FileNotFoundError, OSError) as exc:
-            raise ChecksumMismatch(f"{record.name} v{record.version}: {filename} unreadable ({exc})") from exc
-        if actual != digest:
-            raise ChecksumMismatch(
-                f"{record.name} v{record.version}: {filename} has sha256 {actual}, published as {digest}; "
-                "the stored copy is corrupt: restore it from a backup or re-run the job"
-            )
-        paths[filename] = path
+    paths = {f: verified_path(storage, record, f, digest) for f, digest in sorted(expected_files(record).items())}
     return OpenVersion(record, storage.fs, paths)
 
+
+def expected_files(record: DatasetVersionRecord) -> dict[str, str]:
+    """File name -> sha256 of every file a version published, metadata.json included."""
+    files = {name: f["sha256"] for name, f in record.meta.get("files", {}).items()}
+    files[METADATA_FILE] = record.meta["metadata_sha256"]
+    return files
+
+
+def verified_path(storage: DatasetStorage, record: DatasetVersionRecord, filename: str, digest: str) -> str:
+    """Path of a version's file after checking its sha256 against the one published
+    (:class:`ChecksumMismatch` if it is missing, unreadable or different)."""
+    path = f"{record.uri}/{filename}"
+    try:
+        actual = sha256_file(storage.fs, path)
+    except (FileNotFoundError, OSError) as exc:
+        raise ChecksumMismatch(f"{record.name} v{record.version}: {filename} unreadable ({exc})") from exc
+    if actual != digest:
+        raise ChecksumMismatch(
+            f"{record.name} v{record.version}: {filename} has sha256 {actual}, published as {digest}; "
+            "the stored copy is corrupt: restore it from a backup or re-run the job"
+        )
+    return path
