@@ -9,7 +9,6 @@ from __future__ import annotations
 import itertools
 import json
 import math
-from importlib import metadata as importlib_metadata
 
 import numpy as np
 import pyarrow as pa
@@ -17,20 +16,14 @@ import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
 from schema import BINS_SCHEMA, RADIAL_SCHEMA, SUMMARY_SCHEMA, table_metadata
+from schema.version import code_version
 
 from .merge import Result
 
-__all__ = ["radial_table", "bins_table", "summary_table", "summary", "write_tables", "code_version", "TABLE_FILES"]
+__all__ = ["radial_table", "bins_table", "summary_table", "summary", "write_tables", "TABLE_FILES"]
 
 COMPONENTS3 = ("single", "multiple", "total")
 TABLE_FILES = ("radial.parquet", "bins.parquet", "summary.parquet", "summary.json")
-
-
-def code_version() -> str:
-    try:
-        return importlib_metadata.version("bssrdf-db")
-    except importlib_metadata.PackageNotFoundError:  # running from a source tree
-        return "0+unknown"
 
 
 def _keys(result: Result):

@@ -8,14 +8,16 @@ Modules: :mod:`.storage` (layout, staging, atomic publish, verified reads), :mod
 (metadata.json, code version), :mod:`.publish` (the merge task run by workers).
 """
 
-from service.datasets.metadata import build_metadata, code_version
+from service.datasets.metadata import build_metadata
 from service.datasets.publish import IncompleteShards, run_merge_task
 from service.datasets.storage import (
     METADATA_FILE,
     DatasetStorage,
     OpenVersion,
     StagedVersion,
+    expected_files,
     open_version,
+    verified_path,
     sha256_file,
 )
 
@@ -24,10 +26,11 @@ __all__ = [
     "StagedVersion",
     "OpenVersion",
     "open_version",
+    "expected_files",
+    "verified_path",
     "sha256_file",
     "METADATA_FILE",
     "run_merge_task",
     "IncompleteShards",
     "build_metadata",
-    "code_version",
 ]

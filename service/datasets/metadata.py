@@ -1,46 +1,15 @@
-"""The metadata.json of a dataset version, and the code version recorded in it."""
+"""The metadata.json of a dataset version (its code version is :func:`schema.version.code_version`)."""
 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-from functools import lru_cache
-from importlib import metadata as importlib_metadata
-from pathlib import Path
 from typing import Any
 
-__all__ = ["code_version", "build_metadata", "metadata_bytes", "METADATA_FORMAT"]
+from schema.version import code_version
+
+__all__ = ["build_metadata", "metadata_bytes", "METADATA_FORMAT"]
 
 METADATA_FORMAT = 1
-_REPO = Path(__file__).resolve().parents[2]
-
-
-@lru_cache
-def code_version() -> dict[str, str | None]:
-    """``{"package": version, "git_commit": sha or None}``.
-
-    The commit comes from ``BSSRDF_GIT_COMMIT`` (set in container images) or ``git rev-parse``
-    when running from a checkout; None otherwise.
-    """
-    try:
-        package = importlib_metadata.version("bssrdf-db")
-    except importlib_metadata.PackageNotFoundError:  # running from a checkout: read pyproject
-        try:
-            import tomllib
-
-            package = tomllib.loads((_REPO / "pyproject.toml").read_text())["project"]["version"]
-        except (OSError, KeyError, ValueError):
-            package = None
-    commit = os.environ.get("BSSRDF_GIT_COMMIT")
-    if not commit and (_REPO / ".git").exists():
-        try:
-            commit = subprocess.run(
-                ["git", "rev-parse", "HEAD"], cwd=_REPO, capture_output=True, text=True, timeout=5, check=True
-            ).stdout.strip()
-        except (OSError, subprocess.SubprocessError):
-            commit = None
-    return {"package": package, "git_commit": commit or None}
 
 
 def build_metadata(

@@ -80,12 +80,6 @@ class JobProgress:
     dataset_name: str | None = None
     dataset_version: int | None = None
 
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-able form."""
-        d = dict(self.__dict__)
-        d["state"] = str(self.state)
-        return d
-
 
 @dataclass(frozen=True)
 class DatasetVersionRecord:

@@ -40,6 +40,13 @@ def test_version_detail_has_metadata_and_summary_and_latest_works(ds_client, pub
     meta = v1["metadata"]
     assert meta["spec"]["seed"] == 7 and meta["seed"] == 7 and meta["shards"] == 2
     assert meta["code_version"]["package"] and meta["files"]["radial.parquet"]["sha256"]
+    # One code version in every table and file of a version.
+    for table in ("radial.parquet", "bins.parquet", "summary.parquet"):
+        data = ds_client.get(f"/v1/datasets/tiny/versions/1/files/{table}").content
+        run = json.loads(pq.read_schema(io.BytesIO(data)).metadata[b"bssrdf.run"])
+        assert run["code_version"] == meta["code_version"], table
+    summary = ds_client.get("/v1/datasets/tiny/versions/1/files/summary.json").json()
+    assert summary["run"]["code_version"] == meta["code_version"]
     assert v1["summary"]["name"] == "tiny" and v1["summary"]["results"]
     assert {r["component"] for r in v1["summary"]["results"]} == {"single", "multiple", "total"}
     latest = ds_client.get("/v1/datasets/tiny/versions/latest").json()

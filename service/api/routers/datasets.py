@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Iterator
 from typing import Annotated
 
@@ -13,8 +12,8 @@ from fastapi.responses import StreamingResponse
 from service.api.deps import ReadAuthDep, StorageDep, StoreDep
 from service.api.errors import error_responses
 from service.api.models import DatasetPublic, DatasetVersionDetail, DatasetVersionPublic, dataset_from_record
-from service.datasets import METADATA_FILE, DatasetStorage
-from service.store import ChecksumMismatch, DatasetVersionRecord, JobStore, VersionNotFound
+from service.datasets import DatasetStorage, expected_files, verified_path
+from service.store import DatasetVersionRecord, JobStore, VersionNotFound
 
 __all__ = ["router", "parse_version"]
 
@@ -74,30 +73,6 @@ def get_version(_token: ReadAuthDep, name: NamePath, version: VersionPath, store
     return DatasetVersionDetail.from_record(_version(store, name, version))
 
 
-def _expected_files(record: DatasetVersionRecord) -> dict[str, str]:
-    files = {k: f["sha256"] for k, f in record.meta.get("files", {}).items()}
-    files[METADATA_FILE] = record.meta["metadata_sha256"]
-    return files
-
-
-def _verified_path(storage: DatasetStorage, record: DatasetVersionRecord, filename: str, digest: str) -> str:
-    """Path of the file after checking its sha256 against the catalog (ChecksumMismatch otherwise)."""
-    path = f"{record.uri}/{filename}"
-    h = hashlib.sha256()
-    try:
-        with storage.fs.open_input_stream(path) as f:
-            while chunk := f.read(_CHUNK):
-                h.update(chunk)
-    except OSError as exc:
-        raise ChecksumMismatch(f"{record.name} v{record.version}: {filename} unreadable ({exc})") from exc
-    if h.hexdigest() != digest:
-        raise ChecksumMismatch(
-            f"{record.name} v{record.version}: {filename} has sha256 {h.hexdigest()}, published as {digest}; "
-            "the stored copy is corrupt: restore it from a backup or re-run the job"
-        )
-    return path
-
-
 def _stream(storage: DatasetStorage, path: str) -> Iterator[bytes]:
     with storage.fs.open_input_stream(path) as f:
         while chunk := f.read(_CHUNK):
@@ -119,11 +94,11 @@ def download_file(_token: ReadAuthDep, name: NamePath, version: VersionPath, sto
     """One of the version's files, verified against the sha256 recorded at publish time; a
     corrupt copy is never served (500). Only the files the version lists exist here."""
     record = _version(store, name, version)
-    expected = _expected_files(record)
+    expected = expected_files(record)
     if filename not in expected:  # only catalogued names: no path ever comes from the request
         raise HTTPException(404, f"{record.name} v{record.version} has no file {filename!r}; "
                                  f"available: {', '.join(sorted(expected))}")
-    path = _verified_path(storage, record, filename, expected[filename])
+    path = verified_path(storage, record, filename, expected[filename])
     suffix = filename[filename.rfind("."):]
     headers = {"ETag": f'"{expected[filename]}"',
                "Content-Disposition": f'attachment; filename="{record.name}-v{record.version}-{filename}"'}
