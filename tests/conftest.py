@@ -1,7 +1,7 @@
 """Shared fixtures of the test suite.
 
 The walk tests run the eager walk (BSSRDF_COMPILE=0): torch.compile costs 30-60 s per step
-function, more than the statistics themselves.  tests/test_walk_determinism.py runs the compiled
+function, more than the statistics themselves.  tests/workers/test_walk_determinism.py runs the compiled
 path once, in a subprocess, under the ``slow`` mark.
 """
 
@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy import stats as sps  # noqa: E402
 
-from tests.stats import ALPHA, sidak_level  # noqa: E402
+from tests.support.stats import ALPHA, sidak_level  # noqa: E402
 
 
 class WalkStats:

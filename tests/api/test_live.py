@@ -17,7 +17,7 @@ import httpx
 import pytest
 
 from tests.api.conftest import TINY_SPEC, tiny_spec
-from tests.waiting import wait_for
+from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.slow
 

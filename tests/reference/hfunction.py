@@ -25,7 +25,7 @@ residual < 1e-13). H at an arbitrary mu is obtained by Nystrom interpolation,
 i.e. by evaluating the right-hand side of (*) with the nodal values, which is
 exact at the nodes and as accurate as the quadrature elsewhere. Accuracy:
 better than 1e-10 absolute for mu in [0, 1] (checked against the independent
-integral representation below, see tests/test_reference_solutions.py).
+integral representation below, see tests/workers/test_reference_solutions.py).
 
 Independent representation (``h_function_integral``)
 -----------------------------------------------------

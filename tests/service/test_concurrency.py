@@ -22,7 +22,7 @@ def test_four_processes_race_over_fifty_tasks(store, db_url):
     start_at = time.time() + 2.0
     procs = [
         subprocess.Popen(
-            [sys.executable, "-m", "tests.service._claimer", db_url, str(start_at)],
+            [sys.executable, "-m", "tests.support.claimer", db_url, str(start_at)],
             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )
         for _ in range(4)

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from schema import uniform_edges
-from tests.stats import assert_chi2
+from tests.support.stats import assert_chi2
 from workers.binning import TWO_PI, BinLayout, _edge_function, edge_index, outgoing_azimuth, uniform_index, wrap_angle
 
 # Two channels with different radial edges (mm), same bin count.

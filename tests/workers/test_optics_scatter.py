@@ -2,7 +2,7 @@
 
 Unit length and the cosine to the incoming direction are checked on random directions, the poles
 and both sides of the |uz| switch to the polar frame; the azimuth about the incoming direction is
-chi-square tested for uniformity (tests/stats.py); and the result is compared with a plain-Python
+chi-square tested for uniformity (tests/support/stats.py); and the result is compared with a plain-Python
 rotation through frame-independent invariants (STYLE.md points 7-9).
 """
 
@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 import torch
 
-from tests.stats import assert_chi2
+from tests.support.stats import assert_chi2
 from workers.optics import scatter_direction
 
 DTYPES = [torch.float32, torch.float64]
 
-# Chi-square tests of the azimuth family (Sidak correction in tests.stats): every one is in
+# Chi-square tests of the azimuth family (Sidak correction in tests.support.stats): every one is in
 # test_scatter_direction_azimuth_uniform, the only statistical test of this module.
 N_AZIMUTH_CHI2 = 4 * 2 * 2  # direction sets x cos_theta x directions per set
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.stats import assert_chi2, assert_z, z_threshold
+from tests.support.stats import assert_chi2, assert_z, z_threshold
 from workers import rng
 from workers.rng import philox4x32, philox4x32_scalar, stream_key, to_i32, to_u32, uniform_halfopen, uniform_open
 
@@ -30,7 +30,7 @@ KAT = [
     ),
 ]
 
-# Statistical tests in this module, for the Sidak correction (tests.stats).
+# Statistical tests in this module, for the Sidak correction (tests.support.stats).
 N_CHI2 = 4 + 4 + 3 + 1  # per-word uniformity, word pairs in a block, neighbour pairs, key pairs
 N_Z = 4 * 32 + 6 + 4 + 1  # bit balance, word correlations, neighbour correlations, key correlation
 Z_SIGMA = z_threshold(N_Z)  # ~4.96

@@ -182,7 +182,7 @@ def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
 _COMPILED_SCRIPT = """
 import json
 import torch
-from tests.test_harvest import _bins, _lanes, _block
+from tests.workers.test_harvest import _bins, _lanes, _block
 from workers.walk import EXITED
 
 torch.set_num_threads(1)
@@ -212,7 +212,7 @@ def test_compiled_exit_lookup_agrees_with_the_eager_one():
     """The compiled lookup gives the eager function's bins, batches and G exactly; S = w / cos_o
     to float64 rounding (inductor multiplies by reciprocals of constants and contracts to FMA)."""
     env = dict(os.environ, BSSRDF_COMPILE="1")
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     proc = subprocess.run([sys.executable, "-c", _COMPILED_SCRIPT], cwd=root, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-4000:]
     *same, s_rel = json.loads(proc.stdout.strip().splitlines()[-1])

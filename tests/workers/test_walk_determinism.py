@@ -163,7 +163,7 @@ print(json.dumps(out))
 def _run_compiled(script: str, spec) -> dict:
     """Run script (which prints one JSON line last) with BSSRDF_COMPILE=1 in a fresh process."""
     env = dict(os.environ, BSSRDF_COMPILE="1")
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     proc = subprocess.run(
         [sys.executable, "-c", script, spec.model_dump_json()],
         cwd=root, env=env, capture_output=True, text=True, timeout=900,

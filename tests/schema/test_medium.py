@@ -1,7 +1,7 @@
 """Tests of the spec contract, part 1: the material presets (against the slide table), the
 medium forms (preset, explicit, reduced) with their derived quantities, and the validation
 messages (field location, allowed range, received value) for every field of a spec.
-Bins, sharding, hashing, examples and stored tables are in tests/test_schema_spec.py."""
+Bins, sharding, hashing, examples and stored tables are in tests/schema/test_spec.py."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Tests of the spec contract, part 2: bin edges, sharding into photon ranges, canonical JSON and
 hashing, the examples, the committed JSON Schema and the stored-table schemas.
-Presets, medium forms and validation messages are in tests/test_schema_medium.py."""
+Presets, medium forms and validation messages are in tests/schema/test_medium.py."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from schema import (
     table_metadata,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = sorted((ROOT / "examples").glob("*.json"))
 
 

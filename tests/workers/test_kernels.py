@@ -146,7 +146,7 @@ def test_unwritable_cache_still_runs_the_kernel(tmp_path, monkeypatch, caplog):
 _CONCURRENT = """
 import logging, sys, torch
 logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(message)s")
-from tests.test_kernels import _Consts, _axpy
+from tests.workers.test_kernels import _Consts, _axpy
 from workers.kernels import compile_kernel
 k = compile_kernel(_axpy, "axpy", _Consts(1.5))
 print("result", float(k([torch.arange(8.0), torch.ones(8)], 2.0)))
@@ -156,7 +156,7 @@ print("result", float(k([torch.arange(8.0), torch.ones(8)], 2.0)))
 def test_processes_wanting_the_same_kernel_compile_it_once(tmp_path):
     """Two processes started together: one compiles (holding the artifact's lock), the other
     waits and loads what it saved."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     env = dict(os.environ, BSSRDF_KERNEL_CACHE=str(tmp_path))
     procs = [subprocess.Popen([sys.executable, "-c", _CONCURRENT], cwd=root, env=env, stdout=subprocess.PIPE, text=True) for _ in range(2)]
     outs = [p.communicate(timeout=300)[0] for p in procs]

@@ -2,10 +2,10 @@
 exponential free path.
 
 Samplers are chi-square tested against their own pdf with cell masses integrated by scipy
-(tests/stats.py), pdfs against closed forms and quadrature (STYLE.md points 7-9).  Uniforms for
+(tests/support/stats.py), pdfs against closed forms and quadrature (STYLE.md points 7-9).  Uniforms for
 the samplers come from numpy's PCG64 so that these tests do not depend on workers/rng.py.
-Fresnel and refraction are in tests/test_optics_fresnel.py, scatter_direction in
-tests/test_optics_scatter.py.
+Fresnel and refraction are in tests/workers/test_optics_fresnel.py, scatter_direction in
+tests/workers/test_optics_scatter.py.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import torch
 from scipy import integrate
 
 from tests.reference.single_scattering import hg_phase
-from tests.stats import assert_chi2, assert_mean, assert_samples_match_pdf, cell_masses, chi2_test, histogram
+from tests.support.stats import assert_chi2, assert_mean, assert_samples_match_pdf, cell_masses, chi2_test, histogram
 from workers.optics import (
     exponential_pdf,
     hg_pdf,
@@ -32,10 +32,10 @@ G_VALUES = [-0.9, -0.5, 0.0, 1e-4, 0.3, 0.7, 0.9, 0.99]
 G_EXTREME = [-0.999, -0.99, -0.9, -0.5, -1e-4, 0.0, 1e-8, 1e-4, 0.3, 0.7, 0.9, 0.99, 0.999]
 N_SAMPLES = 1_000_000
 
-# Chi-square tests per family (Sidak correction in tests.stats).  Each count is the number of
+# Chi-square tests per family (Sidak correction in tests.support.stats).  Each count is the number of
 # assert_chi2 / assert_samples_match_pdf calls of one family, all of which are in this module:
 # test_sample_hg_chi2 (one per g x dtype) and test_sample_exponential_chi2_and_mean (one per
-# dtype).  The azimuth family went to tests/test_optics_scatter.py with its own count.
+# dtype).  The azimuth family went to tests/workers/test_optics_scatter.py with its own count.
 N_HG_CHI2 = len(G_VALUES) * len(DTYPES)
 N_EXP_CHI2 = len(DTYPES)
 

@@ -1,6 +1,6 @@
 """Subprocess of the claim race test: claim and complete until nothing is claimable.
 
-    python -m tests.service._claimer URL START_AT  -> prints a JSON list of [task_id, token, kind]
+    python -m tests.support.claimer URL START_AT  -> prints a JSON list of [task_id, token, kind]
 """
 
 from __future__ import annotations

@@ -1,0 +1,1 @@
+"""Helpers shared by every test package: statistics, waiting, concurrent store claimers."""
