@@ -21,6 +21,8 @@ from .bins import (
     PhiOBins,
     RadialBins,
     ThetaSBins,
+    pbrt_radial_edges,
+    pbrt_radius_nodes,
     radial_edges,
     uniform_edges,
 )
@@ -60,6 +62,8 @@ __all__ = [
     "parse_spec",
     "radial_edges",
     "uniform_edges",
+    "pbrt_radius_nodes",
+    "pbrt_radial_edges",
     "MAX_PHOTONS",
     "MAX_INCIDENCE",
     "MAX_TOTAL_BINS",

@@ -10,6 +10,11 @@ before binning.
 Defaults: 48 log-spaced radial bins out to 16 transport mean free paths (per channel), first
 inner edge at 1e-3 of the maximum; theta_s "auto" (1 bin at normal incidence, 12 otherwise);
 8 bins in cos(theta_o); 8 bins in phi_o.
+
+Radial spacing "pbrt" puts one bin on each radius node of pbrt's tabulated BSSRDF (pbrt-v3
+``ComputeBeamDiffusionBSSRDF``): nodes r_0 = 0, r_1 = 2.5e-3, r_j = 1.2 r_{j-1} in optical radii
+r sigma_t; bin j >= 1 is [r_j / sqrt(1.2), r_j sqrt(1.2)), centred on r_j in log r, and bin 0 is
+[0, r_1 / sqrt(1.2)). The extent is fixed by ``count`` (64 nodes: out to 222 optical radii).
 """
 
 from __future__ import annotations
@@ -35,6 +40,10 @@ __all__ = [
     "DEFAULT_MAX_MFP",
     "THETA_S_AUTO_OBLIQUE",
     "TWO_PI",
+    "PBRT_R1",
+    "PBRT_RATIO",
+    "pbrt_radius_nodes",
+    "pbrt_radial_edges",
 ]
 
 TWO_PI = 2.0 * math.pi
@@ -48,6 +57,11 @@ DEFAULT_MAX_MFP = 16.0
 THETA_S_AUTO_OBLIQUE = 12
 """theta_s bin count chosen by "auto" when some incidence angle is not 0."""
 
+PBRT_R1 = 2.5e-3
+"""pbrt's first non-zero radius node, in optical radii r sigma_t (pbrt-v3 bssrdf.cpp)."""
+PBRT_RATIO = 1.2
+"""Ratio of consecutive non-zero radius nodes of pbrt's table."""
+
 _CONFIG = ConfigDict(frozen=True, extra="forbid")
 
 
@@ -60,6 +74,9 @@ class RadialBins(BaseModel):
     r_min = ``min_fraction`` * r_max to r_max, ``count`` bins in total including [0, r_min).
     ``spacing = "linear"``: ``count`` equal bins (``min_fraction`` unused). ``count = 1`` is the
     single bin [0, r_max).
+    ``spacing = "pbrt"``: one bin per radius node of pbrt's table, in optical radii (see the
+    module docstring); ``count`` >= 2 nodes, no ``max_mm`` / ``max_mfp`` (the nodes fix the
+    extent), ``min_fraction`` unused.
     """
 
     model_config = _CONFIG
@@ -72,7 +89,7 @@ class RadialBins(BaseModel):
         None, description="Outer radius in transport mean free paths 1/sigma_t' (per channel); "
         "default 16 when max_mm is not given."
     )
-    spacing: Literal["linear", "log"] = "log"
+    spacing: Literal["linear", "log", "pbrt"] = "log"
     min_fraction: Annotated[
         float, Interval(0, 1, lo_open=True, hi_open=True, what="min_fraction")
     ] = Field(1e-3, description="Log spacing: first inner edge as a fraction of the maximum.")
@@ -82,8 +99,30 @@ class RadialBins(BaseModel):
     def _default_extent(cls, data: Any) -> Any:
         """Fill ``max_mfp = 16`` when neither extent is given."""
         if isinstance(data, dict) and data.get("max_mm") is None and data.get("max_mfp") is None:
-            data = {**data, "max_mfp": DEFAULT_MAX_MFP}
+            if data.get("spacing") != "pbrt":  # pbrt's nodes fix the extent themselves
+                data = {**data, "max_mfp": DEFAULT_MAX_MFP}
         return data
+
+    @model_validator(mode="after")
+    def _pbrt_nodes(self) -> RadialBins:
+        """Spacing "pbrt": at least 2 nodes, and no extent of its own."""
+        if self.spacing != "pbrt":
+            return self
+        if self.max_mm is not None or self.max_mfp is not None:
+            raise PydanticCustomError(
+                "radial_extent",
+                'spacing "pbrt" puts bins on pbrt\'s radius nodes, whose extent is fixed by count '
+                "(optical radii up to 2.5e-3 * 1.2^(count - 1.5)); remove max_mm / max_mfp; "
+                "received max_mm={mm}, max_mfp={mfp}",
+                {"mm": self.max_mm, "mfp": self.max_mfp},
+            )
+        if self.count < 2:
+            raise PydanticCustomError(
+                "radial_count",
+                'spacing "pbrt" needs count in the allowed range [2, 4096] (pbrt uses 64); received {n}',
+                {"n": self.count},
+            )
+        return self
 
     @model_validator(mode="after")
     def _one_extent(self) -> RadialBins:
@@ -96,7 +135,10 @@ class RadialBins(BaseModel):
         return self
 
     def max_radius_mm(self, transport_mfp_mm: float) -> float:
-        """Outer radius [mm] for a channel whose transport mean free path is given [mm]."""
+        """Outer radius [mm] for a channel whose transport mean free path is given [mm]
+        (not for spacing "pbrt", whose edges are :func:`pbrt_radial_edges` / sigma_t)."""
+        if self.spacing == "pbrt":
+            raise ValueError('spacing "pbrt" has no max radius of its own: use pbrt_radial_edges(count) / sigma_t')
         return self.max_mm if self.max_mm is not None else self.max_mfp * transport_mfp_mm
 
 
@@ -157,3 +199,18 @@ def radial_edges(radial: RadialBins, r_max_mm: float) -> np.ndarray:
     outer[0], outer[-1] = r_min, r_max_mm
     return np.concatenate([[0.0], outer])
 
+
+
+def pbrt_radius_nodes(count: int) -> np.ndarray:
+    """pbrt's radius nodes in optical radii: r_0 = 0, r_j = 2.5e-3 * 1.2^(j - 1), ``count`` of them."""
+    if count < 2:
+        raise ValueError(f"pbrt's radius nodes need count >= 2; received {count}")
+    return np.concatenate([[0.0], PBRT_R1 * PBRT_RATIO ** np.arange(count - 1, dtype=np.float64)])
+
+
+def pbrt_radial_edges(count: int) -> np.ndarray:
+    """``count + 1`` edges in optical radii with one bin per node of :func:`pbrt_radius_nodes`:
+    [0, r_1 / sqrt(1.2), r_1 sqrt(1.2), r_2 sqrt(1.2), ...], bin j >= 1 centred on r_j in log r."""
+    nodes = pbrt_radius_nodes(count)
+    half = math.sqrt(PBRT_RATIO)
+    return np.concatenate([[0.0, nodes[1] / half], nodes[1:] * half])

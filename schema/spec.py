@@ -31,7 +31,15 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from .bins import MAX_TOTAL_BINS, THETA_S_AUTO_OBLIQUE, TWO_PI, BinSpec, radial_edges, uniform_edges
+from .bins import (
+    MAX_TOTAL_BINS,
+    THETA_S_AUTO_OBLIQUE,
+    TWO_PI,
+    BinSpec,
+    pbrt_radial_edges,
+    radial_edges,
+    uniform_edges,
+)
 from .constraints import Interval
 from .errors import ShardIndexError, SpecError
 from .medium import ChannelOptics, MediumSpec
@@ -167,6 +175,8 @@ class SimulationSpec(BaseModel):
     def radial_edges_mm(self) -> np.ndarray:
         """Radial edges [mm], float64 array [n_channels, n_r + 1]; column 0 is 0."""
         r = self.bins.radial
+        if r.spacing == "pbrt":  # pbrt's nodes are optical radii r sigma_t: per channel in mm
+            return np.stack([pbrt_radial_edges(r.count) / c.sigma_t for c in self.channels()])
         return np.stack([radial_edges(r, r.max_radius_mm(c.transport_mfp_mm))
                          for c in self.channels()])
 

@@ -214,7 +214,7 @@ BAD = [
     ("radial-min_fraction", base(bins={"radial": {"min_fraction": 1.0}}),
      "bins.radial.min_fraction", "(0, 1)"),
     ("radial-spacing", base(bins={"radial": {"spacing": "cubic"}}), "bins.radial.spacing",
-     "'linear' or 'log'"),
+     "'linear', 'log' or 'pbrt'"),
     ("theta_s", base(bins={"theta_s": {"count": 361}}), "bins.theta_s.count", "[1, 360]"),
     ("cos_theta_o", base(bins={"cos_theta_o": {"count": 257}}), "bins.cos_theta_o.count",
      "[1, 256]"),

@@ -29,7 +29,10 @@ from schema import (
     BinSpec,
     ShardIndexError,
     SimulationSpec,
+    SpecError,
     load_spec,
+    parse_spec,
+    pbrt_radius_nodes,
     spec_json_schema_text,
     table_metadata,
 )
@@ -96,6 +99,39 @@ def test_radial_edges_strictly_increasing(count, spacing, min_fraction):
     if count == 1:
         np.testing.assert_array_equal(edges[:, 1], 16.0 / np.array(
             [c.sigma_t_reduced for c in spec.channels()]))
+
+
+def test_radial_edges_pbrt_are_centred_on_pbrts_nodes_per_channel():
+    spec = SimulationSpec.model_validate(base(bins={"radial": {"count": 64, "spacing": "pbrt"}}))
+    r = spec.bins.radial
+    assert (r.max_mm, r.max_mfp) == (None, None)  # the nodes fix the extent
+    nodes = pbrt_radius_nodes(64)
+    # pbrt-v3 ComputeBeamDiffusionBSSRDF: r[0] = 0, r[1] = 2.5e-3, r[i] = 1.2 r[i-1].
+    expected = [0.0, 2.5e-3]
+    for _ in range(62):
+        expected.append(expected[-1] * 1.2)
+    np.testing.assert_allclose(nodes, expected, rtol=1e-13)
+    assert nodes[-1] == pytest.approx(202.85, rel=1e-4)
+    edges = spec.radial_edges_mm()
+    assert edges.shape == (3, 65)
+    for row, c in zip(edges, spec.channels()):
+        optical = row * c.sigma_t
+        assert optical[0] == 0.0 and np.all(np.diff(optical) > 0)
+        # bins 1.. are centred on the nodes in log r (geometric midpoint of the edges)
+        np.testing.assert_allclose(np.sqrt(optical[1:-1] * optical[2:]), nodes[1:], rtol=1e-13)
+        assert optical[1] == pytest.approx(2.5e-3 / math.sqrt(1.2), rel=1e-14)
+
+
+@pytest.mark.parametrize("radial, field", [
+    ({"count": 64, "spacing": "pbrt", "max_mm": 3.0}, "bins.radial"),
+    ({"count": 64, "spacing": "pbrt", "max_mfp": 16}, "bins.radial"),
+    ({"count": 1, "spacing": "pbrt"}, "bins.radial"),
+])
+def test_radial_pbrt_refuses_an_extent_or_one_node(radial, field):
+    with pytest.raises(SpecError) as info:
+        parse_spec(base(bins={"radial": radial}))
+    assert field in str(info.value)
+    assert "pbrt" in str(info.value) and "received" in str(info.value)
 
 
 def test_theta_s_auto_and_angular_edges():
