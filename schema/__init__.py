@@ -10,7 +10,9 @@ Modules: :mod:`schema.spec` (SimulationSpec, load_spec), :mod:`schema.medium` (M
 ChannelOptics), :mod:`schema.presets` (Jensen et al. 2001 materials), :mod:`schema.bins`
 (BinSpec, edges), :mod:`schema.tables` (Arrow schemas, metadata keys), :mod:`schema.errors`,
 :mod:`schema.constraints` (range checks), :mod:`schema.names` (the name rule),
-:mod:`schema.version` (code version), :mod:`schema.export` (JSON Schema file).
+:mod:`schema.version` (code version), :mod:`schema.export` (JSON Schema file),
+:mod:`schema.sweep` (SweepSpec: grids of media), :mod:`schema.media` (a job's media and its task
+index <-> (medium, shard)).
 """
 
 from .bins import (
@@ -28,10 +30,12 @@ from .bins import (
 )
 from .errors import ShardIndexError, SpecError, format_validation_error
 from .export import SPEC_SCHEMA_PATH, spec_json_schema_text, write_spec_json_schema
+from .media import Medium
 from .medium import ChannelOptics, MediumSpec
 from .presets import PRESET_CHANNELS, PRESETS, Preset, get_preset
 from .names import NAME_MAX, NAME_PATTERN, InvalidName, check_name
-from .spec import MAX_INCIDENCE, MAX_PHOTONS, SimulationSpec, load_spec, parse_spec
+from .spec import MAX_INCIDENCE, MAX_PHOTONS, MAX_TASKS, SimulationSpec, load_spec, parse_spec
+from .sweep import AlbedoGrid, SweepPoint, SweepSpec, linear_albedos, pbrt_albedos
 from .tables import (
     BINS_SCHEMA,
     COLUMN_DOCS,
@@ -53,6 +57,12 @@ __all__ = [
     "SimulationSpec",
     "MediumSpec",
     "ChannelOptics",
+    "SweepSpec",
+    "AlbedoGrid",
+    "SweepPoint",
+    "Medium",
+    "pbrt_albedos",
+    "linear_albedos",
     "BinSpec",
     "RadialBins",
     "ThetaSBins",
@@ -66,6 +76,7 @@ __all__ = [
     "pbrt_radial_edges",
     "MAX_PHOTONS",
     "MAX_INCIDENCE",
+    "MAX_TASKS",
     "MAX_TOTAL_BINS",
     "DEFAULT_MAX_MFP",
     # names and provenance

@@ -28,6 +28,7 @@ from pydantic import (
     ValidationError,
     ValidationInfo,
     field_validator,
+    model_validator,
 )
 from pydantic_core import PydanticCustomError
 
@@ -42,16 +43,21 @@ from .bins import (
 )
 from .constraints import Interval
 from .errors import ShardIndexError, SpecError
+from . import media as _media
 from .medium import ChannelOptics, MediumSpec
 from .names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
+from .sweep import SweepSpec
 
-__all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE"]
+__all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE", "MAX_TASKS"]
 
 MAX_PHOTONS = 2**40
 """Most photons per incidence angle per channel (photon indices must fit the random streams)."""
 
 MAX_INCIDENCE = 32
 """Most incidence angles in one spec."""
+
+MAX_TASKS = 1_000_000
+"""Most shard tasks (media * shards) of one job."""
 
 _INCIDENCE = Interval(0, 90, hi_open=True, what="incidence angle [deg]")
 
@@ -66,14 +72,23 @@ def _check_name(v: str) -> str:
 class SimulationSpec(BaseModel):
     """Everything a run needs; the fully-defaulted model is what :meth:`spec_hash` hashes."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(
+        frozen=True, extra="forbid",
+        json_schema_extra={"oneOf": [{"required": ["medium"]}, {"required": ["sweep"]}]},
+    )
 
     name: Annotated[str, AfterValidator(_check_name)] = Field(
         description=f"Dataset name: {NAME_RULE.format(n=NAME_MAX)}.",
         json_schema_extra={"pattern": NAME_PATTERN},
     )
     description: str | None = Field(None, max_length=2000, description="Free text for humans.")
-    medium: MediumSpec
+    medium: MediumSpec | None = Field(
+        None, description='The medium; exactly one of "medium" and "sweep" is given.'
+    )
+    sweep: SweepSpec | None = Field(
+        None, description="A grid of media albedo x g x eta in optical units (sigma_t = 1/mm), "
+        "measured in one job; instead of medium."
+    )
     incidence_deg: list[Annotated[float, _INCIDENCE]] = Field(
         default_factory=lambda: [0.0],
         description="Incidence angles theta_i in degrees, each in [0, 90); 1..32 distinct values, "
@@ -82,11 +97,13 @@ class SimulationSpec(BaseModel):
     )
     bins: BinSpec = Field(default_factory=BinSpec, validate_default=True)
     photons: Annotated[int, Interval(1, MAX_PHOTONS, what="photons")] = Field(
-        100_000, description="Photons per incidence angle per channel, 1..2**40."
+        100_000, description="Photons per incidence angle per channel (per medium of a sweep), "
+        "1..2**40."
     )
     seed: Annotated[int, Interval(0, 2**63 - 1, what="seed")] = 0
     shards: Annotated[int, Interval(1, 100_000, what="shards")] = Field(
-        8, description="Independent work units, 1..100000 and <= photons.", validate_default=True
+        8, description="Independent work units (per medium of a sweep), 1..100000 and <= photons; "
+        "media * shards <= 1000000.", validate_default=True
     )
     batches_per_shard: Annotated[int, Interval(1, 1024, what="batches_per_shard")] = Field(
         4, description="Batches per shard for standard errors, 1..1024; shards * batches_per_shard "
@@ -101,6 +118,19 @@ class SimulationSpec(BaseModel):
     max_scatter: Annotated[int, Interval(1, 10_000_000, what="max_scatter")] = Field(
         100_000, description="Path cap in scattering events; the truncated weight is reported."
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_medium_form(cls, data: Any) -> Any:
+        """Exactly one of "medium" and "sweep"."""
+        if isinstance(data, dict):
+            given = [k for k in ("medium", "sweep") if data.get(k) is not None]
+            if len(given) != 1:
+                raise PydanticCustomError(
+                    "medium_or_sweep",
+                    'give exactly one of "medium" (one medium) or "sweep" (a grid of media); '
+                    "received {received}", {"received": " and ".join(given) or "neither"})
+        return data
 
     @field_validator("incidence_deg")
     @classmethod
@@ -119,12 +149,14 @@ class SimulationSpec(BaseModel):
     @field_validator("bins")
     @classmethod
     def _total_bins(cls, bins: BinSpec, info: ValidationInfo) -> BinSpec:
-        medium, incidence = info.data.get("medium"), info.data.get("incidence_deg")
-        if medium is None or incidence is None:
+        incidence = info.data.get("incidence_deg")
+        if incidence is None or "medium" not in info.data or "sweep" not in info.data:
             return bins  # already reported as their own errors
+        medium = info.data["medium"]
+        n_channels = medium.n_channels if medium is not None else 1  # per medium of a sweep
         n_theta = _theta_s_count(bins, incidence)
         factors = [bins.radial.count, n_theta, bins.cos_theta_o.count, bins.phi_o.count,
-                   medium.n_channels, len(incidence)]
+                   n_channels, len(incidence)]
         total = math.prod(factors)
         if total > MAX_TOTAL_BINS:
             raise PydanticCustomError(
@@ -146,6 +178,19 @@ class SimulationSpec(BaseModel):
                 {"photons": photons, "value": v})
         return v
 
+    @field_validator("shards")
+    @classmethod
+    def _tasks_of_sweep(cls, v: int, info: ValidationInfo) -> int:
+        sweep = info.data.get("sweep")
+        if sweep is not None and sweep.n_media * v > MAX_TASKS:
+            raise PydanticCustomError(
+                "too_many_tasks",
+                "shard tasks media * shards = {media} * {value} must be in the allowed range "
+                "[1, {limit}]; received {total} tasks: use fewer shards per medium or split "
+                "the sweep",
+                {"media": sweep.n_media, "value": v, "total": sweep.n_media * v, "limit": MAX_TASKS})
+        return v
+
     @field_validator("batches_per_shard")
     @classmethod
     def _total_batches(cls, v: int, info: ValidationInfo) -> int:
@@ -165,8 +210,44 @@ class SimulationSpec(BaseModel):
     # ---- derived quantities ---------------------------------------------------------------
 
     def channels(self) -> list[ChannelOptics]:
-        """Resolved optics, one per spectral channel (see :meth:`MediumSpec.channels`)."""
+        """Resolved optics, one per spectral channel (see :meth:`MediumSpec.channels`); a
+        sweep's media each have their own: ``spec.medium_spec(m).channels()``."""
+        if self.medium is None:
+            raise ValueError("a sweep has no single medium: use spec.media() or "
+                             "spec.medium_spec(index).channels()")
         return self.medium.channels()
+
+    # ---- media and tasks (schema.media) ---------------------------------------------------
+
+    @property
+    def is_sweep(self) -> bool:
+        """Whether the spec gives a sweep (a grid of media) rather than one medium."""
+        return self.sweep is not None
+
+    @property
+    def n_media(self) -> int:
+        """Media of the job: 1, or n_albedo * n_g * n_eta of a sweep."""
+        return 1 if self.sweep is None else self.sweep.n_media
+
+    def media(self) -> list[_media.Medium]:
+        """Every medium with its index, coordinates and own spec (:func:`schema.media.media`)."""
+        return _media.media(self)
+
+    def medium_spec(self, index: int) -> SimulationSpec:
+        """Medium ``index``'s own single-medium spec (:func:`schema.media.medium_spec`)."""
+        return _media.medium_spec(self, index)
+
+    def task_count(self) -> int:
+        """Shard tasks of the job: media * shards."""
+        return _media.task_count(self)
+
+    def task_of(self, task: int) -> tuple[int, int]:
+        """(medium, shard) of a task index t = medium * shards + shard."""
+        return _media.task_of(self, task)
+
+    def task_index(self, medium: int, shard: int) -> int:
+        """Task index of (medium, shard)."""
+        return _media.task_index(self, medium, shard)
 
     def theta_s_count(self) -> int:
         """theta_s bin count, "auto" resolved: 1 if every incidence angle is 0, else 12."""
@@ -212,8 +293,15 @@ class SimulationSpec(BaseModel):
     # ---- identity -------------------------------------------------------------------------
 
     def canonical_json(self) -> str:
-        """The fully-defaulted, normalised model as JSON with sorted keys and no whitespace."""
-        return json.dumps(self.model_dump(mode="json"), sort_keys=True,
+        """The fully-defaulted, normalised model as JSON with sorted keys and no whitespace.
+
+        Of "medium" and "sweep" only the one given appears, so a single-medium spec hashes as
+        it did before sweeps existed."""
+        data = self.model_dump(mode="json")
+        for form in ("medium", "sweep"):
+            if data[form] is None:
+                del data[form]
+        return json.dumps(data, sort_keys=True,
                           separators=(",", ":"), ensure_ascii=False, allow_nan=False)
 
     def spec_hash(self) -> str:

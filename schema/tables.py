@@ -1,7 +1,10 @@
 """Arrow schemas of the stored tables, their column docs and the Parquet metadata keys.
 
 Three tables per dataset version (ARCHITECTURE.md, "Bins and tallies" and "Datasets"); every
-row is for one (estimator, incidence angle, channel, component):
+row is for one (estimator, medium, incidence angle, channel, component), and carries the
+medium's coordinates ``medium`` (its index in the job: 0 for a single medium, see
+:mod:`schema.media`), ``albedo``, ``g`` and ``eta`` (of the row's channel), so the media of a
+sweep are rows of one table:
 
 * ``RADIAL_SCHEMA`` -- the radial profile Rd(r) = sum of G over an annulus / its area [1/mm^2];
 * ``BINS_SCHEMA`` -- G (flux fraction) and S (the BSSRDF averaged over the bin in dA d omega,
@@ -55,6 +58,11 @@ COMPONENTS = ("single", "multiple", "total")
 
 COLUMN_DOCS: dict[str, str] = {
     "estimator": 'Estimator that produced the row: "exits" or "connections".',
+    "medium": "Index of the medium in the job (0 for a single medium; a sweep's media are "
+              "numbered albedo fastest, eta slowest: see schema.media).",
+    "albedo": "Single-scattering albedo sigma_s / sigma_t of the row's medium and channel.",
+    "g": "Henyey-Greenstein mean cosine of the row's medium and channel.",
+    "eta": "Relative index of refraction of the row's medium.",
     "incidence_deg": "Incidence angle theta_i [deg] in the x-z plane, 0 = normal.",
     "channel": "Spectral channel name of the medium (e.g. R, G, B or c0).",
     "component": 'Scattering order: "single" (one event), "multiple" (two or more), "total".',
@@ -87,7 +95,7 @@ COLUMN_DOCS: dict[str, str] = {
 """Column name -> meaning and unit. Also stored as each field's ``doc`` metadata."""
 
 _STRING = ("estimator", "channel", "component")
-_INT64 = ("photons",)
+_INT64 = ("photons", "medium")
 
 
 def _schema(names: list[str]) -> pa.Schema:
@@ -100,7 +108,7 @@ def _schema(names: list[str]) -> pa.Schema:
     )
 
 
-_KEYS = ["estimator", "incidence_deg", "channel", "component"]
+_KEYS = ["estimator", "medium", "albedo", "g", "eta", "incidence_deg", "channel", "component"]
 
 RADIAL_SCHEMA = _schema(_KEYS + ["r_lo_mm", "r_hi_mm", "Rd_r", "Rd_r_stderr"])
 """One row per radial bin."""

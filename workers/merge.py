@@ -36,6 +36,7 @@ class Result:
     nn_sum: int
     k: int
     shard_info: list[dict] = field(default_factory=list)
+    medium_index: int = 0  # index of the medium in its job (schema.media); 0 for a single medium
 
     @property
     def estimators(self) -> list[str]:

@@ -27,28 +27,38 @@ TABLE_FILES = ("radial.parquet", "bins.parquet", "summary.parquet", "summary.jso
 
 
 def _keys(result: Result):
-    """(estimator, cfg, incidence, channel index, channel name, component index, name) rows."""
+    """(key columns, cfg, channel index, component index) per (estimator, cfg, component);
+    the key columns are the tables' leading columns (schema.tables), as scalars."""
     c = result.configs
     for est in result.estimators:
         for cfg in range(c.n):
             ch = c.channel_of(cfg)
             for k, comp in enumerate(COMPONENTS3):
-                yield est, cfg, c.incidence_of(cfg), ch, c.channel_names[ch], k, comp
+                keys = {
+                    "estimator": est, "medium": int(result.medium_index), "albedo": float(c.albedo[cfg]),
+                    "g": float(c.g[cfg]), "eta": float(c.eta), "incidence_deg": c.incidence_of(cfg),
+                    "channel": c.channel_names[ch], "component": comp,
+                }  # fmt: skip
+                yield keys, cfg, ch, k
+
+
+def _repeat(keys: dict, n: int) -> dict:
+    """Key columns of n rows."""
+    return {name: [value] * n for name, value in keys.items()}
 
 
 def radial_table(result: Result) -> pa.Table:
     """Rd(r) per annulus in 1/mm^2: mean flux through the annulus per unit incident power / area."""
     cols: dict[str, list] = {f.name: [] for f in RADIAL_SCHEMA}
     n_r = result.layout.n_r
-    for est, cfg, inc, ch, name, k, comp in _keys(result):
+    for keys, cfg, ch, k in _keys(result):
+        est = keys["estimator"]
         edges = result.layout.radial_mm[ch]
         area = math.pi * (edges[1:] ** 2 - edges[:-1] ** 2)
         m = result.mean(f"{est}/radial_G")[cfg, k, :n_r]
         se = result.stderr(f"{est}/radial_G")[cfg, k, :n_r]
-        cols["estimator"] += [est] * n_r
-        cols["incidence_deg"] += [inc] * n_r
-        cols["channel"] += [name] * n_r
-        cols["component"] += [comp] * n_r
+        for name, values in _repeat(keys, n_r).items():
+            cols[name] += values
         cols["r_lo_mm"] += edges[:-1].tolist()
         cols["r_hi_mm"] += edges[1:].tolist()
         cols["Rd_r"] += (m / area).tolist()
@@ -63,7 +73,8 @@ def bins_table(result: Result) -> pa.Table:
     omega = L.solid_angle()
     r_i, t_i, c_i, p_i = (a.reshape(-1) for a in np.meshgrid(np.arange(n_r), np.arange(n_t), np.arange(n_c), np.arange(n_p), indexing="ij"))
     parts = []
-    for est, cfg, inc, ch, name, k, comp in _keys(result):
+    for keys, cfg, ch, k in _keys(result):
+        est = keys["estimator"]
         edges = L.radial_mm[ch]
         a_omega = (L.area_mm2(ch)[:, :, None, None] * omega[None, None, :, :]).reshape(-1)
         g = result.mean(f"{est}/bins_G")[cfg, k, :n_r].reshape(-1)
@@ -72,8 +83,7 @@ def bins_table(result: Result) -> pa.Table:
         s_se = result.stderr(f"{est}/bins_S")[cfg, k, :n_r].reshape(-1) / a_omega
         n = len(g)
         parts.append({
-            "estimator": [est] * n, "incidence_deg": np.full(n, inc), "channel": [name] * n, "component": [comp] * n,
-            "r_lo_mm": edges[r_i], "r_hi_mm": edges[r_i + 1],
+            **_repeat(keys, n), "r_lo_mm": edges[r_i], "r_hi_mm": edges[r_i + 1],
             "theta_s_lo": L.theta_s[t_i], "theta_s_hi": L.theta_s[t_i + 1],
             "cos_theta_o_lo": L.cos_o[c_i], "cos_theta_o_hi": L.cos_o[c_i + 1],
             "phi_o_lo": L.phi_o[p_i], "phi_o_hi": L.phi_o[p_i + 1],
@@ -87,10 +97,10 @@ def summary_rows(result: Result) -> list[dict]:
     """One dict per (estimator, incidence, channel, component): R_spec, Rd, beyond r_max, energy."""
     rows = []
     n_r = result.layout.n_r
-    for est, cfg, inc, ch, name, k, comp in _keys(result):
+    for keys, cfg, ch, k in _keys(result):
+        est = keys["estimator"]
         rows.append({
-            "estimator": est, "incidence_deg": inc, "channel": name, "component": comp,
-            "R_spec": float(result.configs.r_spec[cfg]),
+            **keys, "R_spec": float(result.configs.r_spec[cfg]),
             "Rd": float(result.mean(f"{est}/Rd")[cfg, k]),
             "Rd_stderr": float(result.stderr(f"{est}/Rd")[cfg, k]),
             "Rd_beyond_rmax": float(result.mean(f"{est}/radial_G")[cfg, k, n_r]),
