@@ -47,6 +47,7 @@ from . import media as _media
 from .medium import ChannelOptics, MediumSpec
 from .names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
 from .sweep import SweepSpec
+from .target import TargetSpec
 
 __all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE", "MAX_TASKS"]
 
@@ -118,6 +119,10 @@ class SimulationSpec(BaseModel):
     max_scatter: Annotated[int, Interval(1, 10_000_000, what="max_scatter")] = Field(
         100_000, description="Path cap in scattering events; the truncated weight is reported."
     )
+    target: TargetSpec | None = Field(
+        None, description="Run shards in order until these relative standard errors are reached "
+        "(photons is then the cap); see schema/target.py.",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -166,6 +171,25 @@ class SimulationSpec(BaseModel):
                 {"product": " * ".join(map(str, factors)), "total": total,
                  "limit": MAX_TOTAL_BINS})
         return bins
+
+    @field_validator("target")
+    @classmethod
+    def _target_selects_radial_bins(cls, target: TargetSpec | None, info: ValidationInfo) -> TargetSpec | None:
+        """A radial target must cover at least one radial bin of every channel."""
+        medium, bins = info.data.get("medium"), info.data.get("bins")
+        if target is None or target.radial is None or medium is None or bins is None:
+            return target
+        t = target.radial
+        channels = medium.channels()
+        for ch, edges in zip(channels, _radial_edges_mm(bins, channels)):
+            if not np.any((edges[:-1] >= t.r_min_mm) & (edges[1:] <= t.r_max_mm)):
+                raise PydanticCustomError(
+                    "radial_target_empty",
+                    "radial target range [{lo}, {hi}] mm holds no whole radial bin of channel "
+                    "{ch} (edges {edges} mm); widen it",
+                    {"lo": t.r_min_mm, "hi": t.r_max_mm, "ch": ch.name,
+                     "edges": np.array2string(edges, precision=4, threshold=8)[:120]})
+        return target
 
     @field_validator("shards")
     @classmethod
@@ -255,11 +279,7 @@ class SimulationSpec(BaseModel):
 
     def radial_edges_mm(self) -> np.ndarray:
         """Radial edges [mm], float64 array [n_channels, n_r + 1]; column 0 is 0."""
-        r = self.bins.radial
-        if r.spacing == "pbrt":  # pbrt's nodes are optical radii r sigma_t: per channel in mm
-            return np.stack([pbrt_radial_edges(r.count) / c.sigma_t for c in self.channels()])
-        return np.stack([radial_edges(r, r.max_radius_mm(c.transport_mfp_mm))
-                         for c in self.channels()])
+        return _radial_edges_mm(self.bins, self.channels())
 
     def theta_s_edges(self) -> np.ndarray:
         """Exit-azimuth edges [rad], from 0 to 2 pi, :meth:`theta_s_count` bins."""
@@ -296,9 +316,9 @@ class SimulationSpec(BaseModel):
         """The fully-defaulted, normalised model as JSON with sorted keys and no whitespace.
 
         Of "medium" and "sweep" only the one given appears, so a single-medium spec hashes as
-        it did before sweeps existed."""
+        it did before sweeps existed; likewise "target" only when given."""
         data = self.model_dump(mode="json")
-        for form in ("medium", "sweep"):
+        for form in ("medium", "sweep", "target"):
             if data[form] is None:
                 del data[form]
         return json.dumps(data, sort_keys=True,
@@ -307,6 +327,14 @@ class SimulationSpec(BaseModel):
     def spec_hash(self) -> str:
         """sha256 hex digest of :meth:`canonical_json` (UTF-8)."""
         return hashlib.sha256(self.canonical_json().encode("utf-8")).hexdigest()
+
+
+def _radial_edges_mm(bins: BinSpec, channels: list[ChannelOptics]) -> np.ndarray:
+    """Radial edges [mm] of each channel, float64 [n_channels, n_r + 1] (see radial_edges_mm)."""
+    r = bins.radial
+    if r.spacing == "pbrt":  # pbrt's nodes are optical radii r sigma_t: per channel in mm
+        return np.stack([pbrt_radial_edges(r.count) / c.sigma_t for c in channels])
+    return np.stack([radial_edges(r, r.max_radius_mm(c.transport_mfp_mm)) for c in channels])
 
 
 def _theta_s_count(bins: BinSpec, incidence_deg: list[float]) -> int:

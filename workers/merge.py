@@ -13,7 +13,7 @@ from .binning import BinLayout
 from .shard import Configs, bin_layout, build_configs
 from .tally import ShardTally
 
-__all__ = ["Result", "merge", "MergeError"]
+__all__ = ["Result", "Fold", "merge", "MergeError"]
 
 
 class MergeError(ValueError):
@@ -37,6 +37,7 @@ class Result:
     k: int
     shard_info: list[dict] = field(default_factory=list)
     medium_index: int = 0  # index of the medium in its job (schema.media); 0 for a single medium
+    target: object | None = None  # workers.target.TargetStatus of a run to a target error
 
     @property
     def estimators(self) -> list[str]:
@@ -53,25 +54,66 @@ class Result:
         return np.sqrt(self.k / (self.k - 1) * ss) / self.n_sum
 
 
-def merge(spec: SimulationSpec, tallies: Sequence[ShardTally]) -> Result:
+class Fold:
+    """Shard tallies added one at a time in shard order (0, 1, 2, ...) into float64 sums.
+
+    After adding shards 0..K-1, :meth:`result` is bitwise the merge of those K shards: the sums
+    are formed in the same order whether the shards come all at once or one by one.
+    """
+
+    def __init__(self, spec: SimulationSpec):
+        self.spec = spec
+        self.stats: dict[str, list[np.ndarray]] = {}
+        self.n_sum = self.nn_sum = self.k = 0
+        self.shard_info: list[dict] = []
+
+    @property
+    def shards(self) -> int:
+        """Shards folded so far (0..shards-1)."""
+        return len(self.shard_info)
+
+    def add(self, tally: ShardTally) -> None:
+        """Fold the next shard; MergeError if it is not shard :attr:`shards` or its quantities differ."""
+        if tally.shard_index != self.shards or self.shards >= self.spec.shards:
+            raise MergeError(f"shards fold in order: expected shard {self.shards} of {self.spec.shards}, received {tally.shard_index}")
+        if not self.stats:
+            self.stats = {name: [a.copy() for a in tally.stats[name]] for name in sorted(tally.stats)}
+        elif set(tally.stats) != set(self.stats):
+            raise MergeError(f"shard {tally.shard_index} has quantities {sorted(tally.stats)}, expected {sorted(self.stats)}")
+        else:
+            for name, acc in self.stats.items():
+                for a, part in zip(acc, tally.stats[name]):
+                    a += part
+        self.n_sum += tally.n_sum
+        self.nn_sum += tally.nn_sum
+        self.k += tally.k
+        self.shard_info.append(dict(tally.info, shard_index=tally.shard_index))
+
+    def result(self) -> Result:
+        """The merged statistics of the shards folded so far (sharing this fold's arrays: fold no
+        more shards into it while the result is in use)."""
+        if not self.shards:
+            raise MergeError("no shard folded yet")
+        return Result(
+            spec=self.spec, configs=build_configs(self.spec), layout=bin_layout(self.spec), stats=self.stats,
+            n_sum=self.n_sum, nn_sum=self.nn_sum, k=self.k, shard_info=list(self.shard_info),
+        )  # fmt: skip
+
+
+def merge(spec: SimulationSpec, tallies: Sequence[ShardTally], *, prefix: bool = False) -> Result:
     """Sum the shards' statistics in shard order (float64), so the result is bitwise fixed.
 
-    Requires exactly one tally per shard index 0..spec.shards-1, in any order.
+    Requires exactly one tally per shard index 0..spec.shards-1, in any order; with prefix=True,
+    one per shard 0..K-1 for some K >= 1 (the first K shards, as a run to a target error uses).
+    The merge of the first K shards does not depend on the shards after them.
     """
     ordered = sorted(tallies, key=lambda t: t.shard_index)
     indices = [t.shard_index for t in ordered]
-    if indices != list(range(spec.shards)):
-        raise MergeError(f"merge needs shards 0..{spec.shards - 1} exactly once; received {indices}")
-    names = set(ordered[0].stats)
-    stats = {name: [a.copy() for a in ordered[0].stats[name]] for name in sorted(names)}
-    for t in ordered[1:]:
-        if set(t.stats) != names:
-            raise MergeError(f"shard {t.shard_index} has quantities {sorted(t.stats)}, expected {sorted(names)}")
-        for name in stats:
-            for acc, part in zip(stats[name], t.stats[name]):
-                acc += part
-    return Result(
-        spec=spec, configs=build_configs(spec), layout=bin_layout(spec), stats=stats,
-        n_sum=sum(t.n_sum for t in ordered), nn_sum=sum(t.nn_sum for t in ordered), k=sum(t.k for t in ordered),
-        shard_info=[dict(t.info, shard_index=t.shard_index) for t in ordered],
-    )  # fmt: skip
+    k = len(indices) if prefix else spec.shards
+    if not indices or indices != list(range(k)) or k > spec.shards:
+        want = f"shards 0..K-1 for some K in [1, {spec.shards}]" if prefix else f"shards 0..{spec.shards - 1}"
+        raise MergeError(f"merge needs {want} exactly once; received {indices[:20]}")
+    fold = Fold(spec)
+    for t in ordered:
+        fold.add(t)
+    return fold.result()

@@ -127,7 +127,7 @@ def run_facts(result: Result) -> dict:
         "engine": engines[0] if len(engines) == 1 else engines,
         "rng": "philox4x32-10, key sha256(seed|configuration), counter (photon, draw, purpose)",
         "photons_per_config": int(result.n_sum),
-        "shards": result.spec.shards,
+        "shards": len(result.shard_info),  # the first K shards of a run to a target error
         "batches": int(result.k),
         "seed": result.spec.seed,
         "channels": [c.model_dump() for c in result.spec.channels()],
@@ -139,12 +139,15 @@ def run_facts(result: Result) -> dict:
 
 def summary(result: Result) -> dict:
     """The summary printed by `bssrdf simulate --json` and stored as summary.json."""
-    return {
+    doc = {
         "name": result.spec.name,
         "spec_hash": result.spec.spec_hash(),
         "run": run_facts(result),
         "results": summary_rows(result),
     }
+    if result.target is not None:
+        doc["target"] = result.target.as_dict()  # workers.target.TargetStatus: reached, photons, worst check
+    return doc
 
 
 def write_tables(result: Result, out_dir: str, filesystem: pafs.FileSystem | None = None) -> list[str]:

@@ -8,6 +8,7 @@ summary.parquet and summary.json into --out.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -22,7 +23,7 @@ from .cores import default_workers
 # torch and the walk are imported where they are used: `bssrdf run` and `bssrdf --help` build
 # this module's parser, and a worker-launching parent must not spend seconds importing torch.
 
-__all__ = ["add_parser", "main", "simulate", "run_shards", "format_summary"]
+__all__ = ["add_parser", "main", "simulate", "simulate_to_target", "run_shards", "format_summary"]
 
 
 def simulate(spec, *, progress=None, threads: int | None = None, processes: int | None = None):
@@ -31,11 +32,46 @@ def simulate(spec, *, progress=None, threads: int | None = None, processes: int 
     processes > 1 runs the shards on that many worker processes (:class:`workers.pool.ShardPool`,
     what the command line does); otherwise they run in this process on `threads` threads (default:
     one per core), each with one torch intra-op thread.  The merge sums in shard order, so the
-    result is bitwise the same for any number of threads or processes.
+    result is bitwise the same for any number of threads or processes.  A spec with a ``target``
+    runs to it (:func:`simulate_to_target`).
     """
     from .merge import merge
 
+    if spec.target is not None:
+        return simulate_to_target(spec, progress=progress, threads=threads, processes=processes)
     return merge(spec, run_shards(spec, range(spec.shards), progress=progress, threads=threads, processes=processes))
+
+
+def simulate_to_target(spec, *, progress=None, threads: int | None = None, processes: int | None = None):
+    """Run shards in shard order until the merge of shards 0..K-1 meets ``spec.target``.
+
+    Shards run in waves of as many as run at once (processes, else threads); after each wave the
+    finished shards are folded in order and :func:`workers.target.target_status` is checked after
+    every one of them, so K is the first prefix that meets the target whatever the wave size, and
+    the result is bitwise the merge of those K shards (shards after K that ran in the same wave
+    are dropped).  Without meeting it, all ``spec.shards`` shards run (``photons`` is the cap).
+    ``result.target`` holds the status of the returned merge.
+    """
+    from .merge import Fold
+    from .pool import ShardPool
+    from .target import target_status
+
+    width = max(1, min(spec.shards, processes if processes is not None else threads or os.cpu_count() or 1))
+    with contextlib.ExitStack() as stack:
+        if processes is not None and width > 1:
+            pool = stack.enter_context(ShardPool(width))  # one pool for every wave: processes start once
+            run = lambda indices: pool.run(spec, indices, progress)  # noqa: E731
+        else:
+            run = lambda indices: run_shards(spec, indices, progress=progress, threads=threads)  # noqa: E731
+        fold = Fold(spec)
+        for start in range(0, spec.shards, width):
+            for tally in run(range(start, min(spec.shards, start + width))):
+                fold.add(tally)
+                result = fold.result()
+                result.target = target_status(result, spec.target)
+                if result.target.reached:
+                    return result
+    return result
 
 
 def run_shards(spec, indices, *, progress=None, threads: int | None = None, processes: int | None = None) -> list:
@@ -74,6 +110,13 @@ def format_summary(doc: dict) -> str:
         r_spec = comps["total"]["R_spec"]
         lines.append(f"{est:<12}{inc:>8.1f} {ch:<4}{r_spec:>9.5f}  {cells[0]:>20}  {cells[1]:>20}  {cells[2]:>20}")
     lines.append("Rd = diffuse reflectance (specular excluded) per unit incident power, +- one standard error.")
+    if "target" in doc:
+        t, w = doc["target"], doc["target"]["worst"]
+        what = "Rd" if w["r_lo_mm"] is None else f"Rd(r) in [{w['r_lo_mm']:.4g}, {w['r_hi_mm']:.4g}) mm"
+        rel = "no estimate" if w["rel_stderr"] is None else f"{w['rel_stderr']:.3g}"
+        lines.append(f"target {'reached' if t['reached'] else 'NOT reached'} with {t['photons']} photons per angle and channel "
+                     f"({t['met']} of {t['checks']} checks met; worst: {what}, {w['estimator']}, {w['channel']}, "
+                     f"theta_i {w['incidence_deg']:g}: relative error {rel}, limit {w['limit']:g})")  # fmt: skip
     return "\n".join(lines)
 
 
