@@ -12,7 +12,8 @@ ChannelOptics), :mod:`schema.presets` (Jensen et al. 2001 materials), :mod:`sche
 :mod:`schema.constraints` (range checks), :mod:`schema.names` (the name rule),
 :mod:`schema.version` (code version), :mod:`schema.export` (JSON Schema file),
 :mod:`schema.sweep` (SweepSpec: grids of media), :mod:`schema.media` (a job's media and its task
-index <-> (medium, shard)).
+index <-> (medium, shard)),
+:mod:`schema.estimate` (what a spec costs: photons, steps, CPU seconds per shard).
 """
 
 from .bins import (

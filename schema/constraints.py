@@ -5,6 +5,9 @@ show the whole allowed interval, and they let ``inf``/``nan`` through unbounded 
 numeric field of the spec therefore carries an :class:`Interval`, which
 
 * rejects non-finite numbers (``nan``, ``inf``) whatever the range,
+* is strict about the JSON type: ``true`` / ``false`` and strings are refused where a number is
+  expected (lax pydantic would read ``"photons": true`` as 1 and ``"g": "0.5"`` as 0.5); an integer
+  field still accepts a float with an integral value (``1e6``), as JSON does not tell them apart,
 * reports ``"must be in the allowed range (0, 4]; received -1.0"`` (the dotted field path is
   added by pydantic's error location, and by :class:`schema.errors.SpecError`),
 * still exports ``minimum`` / ``exclusiveMinimum`` / ``maximum`` / ``exclusiveMaximum`` into the
@@ -23,7 +26,7 @@ from typing import Any
 from pydantic import GetCoreSchemaHandler, GetJsonSchemaHandler
 from pydantic_core import PydanticCustomError, core_schema
 
-__all__ = ["Interval", "PerChannel", "MAX_CHANNELS", "range_error"]
+__all__ = ["Interval", "PerChannel", "MAX_CHANNELS", "range_error", "refuse_non_number"]
 
 MAX_CHANNELS = 16
 """Most spectral channels a medium may have."""
@@ -36,6 +39,19 @@ def range_error(what: str, allowed: str, value: Any) -> PydanticCustomError:
         "{what} must be in the allowed range {allowed}; received {value}",
         {"what": what, "allowed": allowed, "value": _show(value)},
     )
+
+
+def refuse_non_number(value: Any, what: str = "value") -> Any:
+    """Return ``value`` unless it is a boolean or a string, which lax pydantic would coerce to a
+    number (``True`` -> 1, ``"5"`` -> 5): a spec that says ``true`` for a count is a mistake."""
+    if isinstance(value, (bool, str)):
+        kind = "a boolean" if isinstance(value, bool) else "a string"
+        raise PydanticCustomError(
+            "number_type",
+            "{what} must be a JSON number, not {kind}; received {value}",
+            {"what": what, "kind": kind, "value": _show(value), "allowed": "a JSON number"},
+        )
+    return value
 
 
 def _show(value: Any) -> str:
@@ -91,7 +107,11 @@ class Interval:
     def __get_pydantic_core_schema__(
         self, source: Any, handler: GetCoreSchemaHandler
     ) -> core_schema.CoreSchema:
-        return core_schema.no_info_after_validator_function(self.check, handler(source))
+        inner = handler(source)
+        if source in (int, float):
+            inner = core_schema.no_info_before_validator_function(
+                lambda v: refuse_non_number(v, self.what), inner)
+        return core_schema.no_info_after_validator_function(self.check, inner)
 
     def __get_pydantic_json_schema__(
         self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler
@@ -120,6 +140,12 @@ class PerChannel:
 
     interval: Interval
 
+    def refuse_non_numbers(self, v: Any) -> Any:
+        """Booleans and strings are refused (scalar or list entries) before lax coercion."""
+        for x in v if isinstance(v, list) else [v]:
+            refuse_non_number(x, self.interval.what)
+        return v
+
     def check(self, v: Any) -> Any:
         values = v if isinstance(v, list) else [v]
         if isinstance(v, list) and not 1 <= len(v) <= MAX_CHANNELS:
@@ -138,7 +164,8 @@ class PerChannel:
     def __get_pydantic_core_schema__(
         self, source: Any, handler: GetCoreSchemaHandler
     ) -> core_schema.CoreSchema:
-        return core_schema.no_info_after_validator_function(self.check, handler(source))
+        inner = core_schema.no_info_before_validator_function(self.refuse_non_numbers, handler(source))
+        return core_schema.no_info_after_validator_function(self.check, inner)
 
     def __get_pydantic_json_schema__(
         self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler

@@ -11,7 +11,9 @@ import argparse
 import importlib
 import sys
 
-__all__ = ["main", "SUBCOMMANDS"]
+from schema.version import code_version
+
+__all__ = ["main", "SUBCOMMANDS", "version_text"]
 
 SUBCOMMANDS = (
     "workers.simulate",  # simulate: in-process measurement
@@ -23,11 +25,19 @@ SUBCOMMANDS = (
 )
 
 
+def version_text() -> str:
+    """``bssrdf-db 0.1.0 (commit abc123...)``: the code version every dataset version records."""
+    v = code_version()
+    return f"bssrdf-db {v['package'] or 'unknown'} (commit {v['git_commit'] or 'unknown'})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="bssrdf",
         description="Exact, error-barred BSSRDF tables from Monte Carlo photon random walks.",
     )
+    parser.add_argument("--version", action="version", version=version_text(),
+                        help="print the package version and git commit, and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMANDS:
         importlib.import_module(name).add_parser(sub)

@@ -156,9 +156,9 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     """Run ``bssrdf run`` with parsed arguments; returns the exit status."""
     from schema import SpecError, load_spec
-    from service.settings import Settings, sqlite_url_for
+    from service.settings import settings_or_exit, sqlite_url_for
 
-    settings = Settings()
+    settings = settings_or_exit()
     if args.data_dir:
         data_dir = Path(args.data_dir)
         db_url, storage_uri = sqlite_url_for(data_dir), str(data_dir / "data")

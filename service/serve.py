@@ -8,6 +8,7 @@ is set. The API does not run simulations: start ``bssrdf worker`` processes agai
 database and storage.
 """
 
+
 from __future__ import annotations
 
 import argparse
@@ -15,10 +16,22 @@ import sys
 
 __all__ = ["add_parser", "main", "build_settings"]
 
+EPILOG = """\
+authentication:
+  BSSRDF_API_TOKENS   bearer tokens, a JSON list: BSSRDF_API_TOKENS='["TOKEN1", "TOKEN2"]'
+                      (make one: python -c 'import secrets; print(secrets.token_urlsafe(32))').
+                      Writes (submit, cancel, delete) need 'Authorization: Bearer TOKEN'; reads
+                      too when BSSRDF_READ_OPEN=false. Without tokens authentication is off, and
+                      serve refuses any address but loopback. Clients: --token or BSSRDF_TOKEN.
+limits (refused with 4xx naming the field, the limit and the value):
+  BSSRDF_MAX_JOB_PHOTONS, BSSRDF_MAX_SHARD_CPU_SECONDS, BSSRDF_WORKER_SPEED, BSSRDF_MAX_BODY_BYTES
+"""
+
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Add the ``serve`` subcommand to an argparse ``subparsers`` object."""
-    p = subparsers.add_parser("serve", help="serve the HTTP API (uvicorn)", description=__doc__.split("\n\n")[0])
+    p = subparsers.add_parser("serve", help="serve the HTTP API (uvicorn)", description=__doc__.split("\n\n")[0],
+                              epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_arguments(p)
     p.set_defaults(func=main)
     return p
@@ -34,11 +47,11 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
 def build_settings(args: argparse.Namespace):
     """Settings from the environment with the command-line options applied."""
-    from service.settings import Settings
+    from service.settings import Settings, settings_or_exit
 
     updates = {"host": args.host, "port": args.port, "database_url": args.db, "storage_uri": args.storage}
     # Validate the updated values like the environment's (port range...): re-run the model.
-    base = Settings()
+    base = settings_or_exit()
     return Settings.model_validate({**base.model_dump(), **{k: v for k, v in updates.items() if v is not None}})
 
 
@@ -60,6 +73,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(prog="bssrdf serve", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="bssrdf serve", description=__doc__.split("\n\n")[0], epilog=EPILOG,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     _add_arguments(parser)
     sys.exit(main(parser.parse_args()))

@@ -7,6 +7,14 @@ environment variables configures a whole deployment::
     BSSRDF_STORAGE_URI=s3://bucket/bssrdf
     BSSRDF_API_TOKENS='["token-a", "token-b"]'
 
+Limits (a submission beyond one is refused with a 4xx naming the field, the limit and the value;
+see deploy/README.md, "Limits")::
+
+    BSSRDF_MAX_JOB_PHOTONS=100000000000      photons x incidence angles x channels of one job
+    BSSRDF_MAX_SHARD_CPU_SECONDS=1200        estimated CPU seconds of one shard (schema.estimate)
+    BSSRDF_WORKER_SPEED=1.0                  the fleet's speed relative to BENCHMARKS.md's machine
+    BSSRDF_MAX_BODY_BYTES=1048576            request body (413 before it is parsed)
+
 Defaults are the one-machine setup: an SQLite job store and a local data directory under
 ``./.bssrdf``. Use :func:`get_settings` (cached) rather than constructing :class:`Settings`
 in request paths.
@@ -14,13 +22,16 @@ in request paths.
 
 from __future__ import annotations
 
+import json
+import sys
 from functools import lru_cache
 from pathlib import Path
+from typing import Annotated, Any
 
-from pydantic import Field, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict, SettingsError
 
-__all__ = ["Settings", "get_settings", "sqlite_url_for", "DEFAULT_DATA_DIR"]
+__all__ = ["Settings", "get_settings", "settings_or_exit", "sqlite_url_for", "DEFAULT_DATA_DIR"]
 
 DEFAULT_DATA_DIR = "./.bssrdf"
 
@@ -47,10 +58,36 @@ class Settings(BaseSettings):
         None, gt=0, description="Heartbeat period of a worker, seconds; default lease_seconds / 4."
     )
     max_attempts: int = Field(3, ge=1, description="Claims of one task before its job fails.")
-    api_tokens: list[str] = Field(default_factory=list, description="Bearer tokens accepted for mutating endpoints.")
+    api_tokens: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Bearer tokens accepted for mutating endpoints: a JSON list of strings.")
     host: str = Field("127.0.0.1", description="Bind address of `bssrdf serve`.")
     port: int = Field(8000, ge=1, le=65535, description="Bind port of `bssrdf serve`.")
     read_open: bool = Field(True, description="Whether read endpoints are served without a token.")
+    max_job_photons: int = Field(
+        100_000_000_000, ge=1, description="Most photons of one job: photons x incidence angles x channels.")
+    max_shard_cpu_seconds: float = Field(
+        1200.0, gt=0, description="Most estimated CPU seconds of one shard (schema.estimate, one core).")
+    worker_speed: float = Field(
+        1.0, gt=0, description="Speed of the fleet's cores relative to the BENCHMARKS.md machine the CPU "
+        "estimate is calibrated on (2.0: twice as fast).")
+    max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body; larger ones get 413.")
+
+    @field_validator("api_tokens", mode="before")
+    @classmethod
+    def _tokens_json_list(cls, value: Any) -> Any:
+        """``BSSRDF_API_TOKENS`` is JSON: ``'["tok1", "tok2"]'``; anything else says how to write it."""
+        if not isinstance(value, str):
+            return value
+        try:
+            tokens = json.loads(value) if value.strip() else []
+        except ValueError:
+            tokens = None
+        if not isinstance(tokens, list) or not all(isinstance(t, str) and t for t in tokens):
+            shown = value if len(value) <= 20 else value[:17] + "..."
+            raise ValueError(
+                "BSSRDF_API_TOKENS must be a JSON list of non-empty strings, e.g. "
+                f"BSSRDF_API_TOKENS='[\"{shown}\"]'; received {shown!r}")
+        return tokens
 
     @model_validator(mode="after")
     def _fill_defaults(self) -> "Settings":
@@ -72,3 +109,16 @@ class Settings(BaseSettings):
 def get_settings() -> Settings:
     """The process-wide settings, read once from the environment."""
     return Settings()
+
+
+def settings_or_exit(**overrides: Any) -> Settings:
+    """Settings for a command-line entry point: a bad ``BSSRDF_*`` variable is one readable line
+    per problem on stderr and exit status 2, not a traceback."""
+    try:
+        return Settings(**overrides)
+    except ValidationError as exc:
+        lines = [f"  BSSRDF_{'_'.join(map(str, e['loc'])).upper() or '?'}: {e['msg'].removeprefix('Value error, ')}" for e in exc.errors()]
+        print("bssrdf: invalid configuration:\n" + "\n".join(lines), file=sys.stderr)
+    except SettingsError as exc:
+        print(f"bssrdf: invalid configuration: {exc}", file=sys.stderr)
+    raise SystemExit(2)

@@ -28,7 +28,7 @@ from sqlalchemy.exc import DBAPIError
 
 from schema import SimulationSpec, parse_spec
 from service.datasets import DatasetStorage, run_merge_task
-from service.settings import Settings
+from service.settings import settings_or_exit
 from service.store import JobStore, Lease, LeaseLost, TaskKind
 
 __all__ = ["Worker", "JsonFormatter", "add_parser", "main", "configure_logging"]
@@ -246,7 +246,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """Run a worker with parsed arguments; returns the exit status."""
-    settings = Settings()
+    settings = settings_or_exit()
     configure_logging()
     # One worker process per core, one torch thread each: shards are independent, so processes
     # scale without per-step synchronisation, and the walk runs exactly as in `bssrdf simulate`.

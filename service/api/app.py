@@ -4,8 +4,9 @@
     app = create_app()                   # settings from the environment (get_settings)
     app = create_app(Settings(...))      # explicit settings (installed as a dependency override)
 
-Routers: ``/v1/jobs``, ``/v1/datasets``, and the unversioned ``/healthz``, ``/readyz``,
-``/metrics``. The interactive OpenAPI documentation is at ``/docs``.
+Routers: ``/v1/jobs``, ``/v1/datasets``, ``/v1/version``, and the unversioned ``/healthz``,
+``/readyz``, ``/metrics``. Request bodies over ``BSSRDF_MAX_BODY_BYTES`` are refused (413) before
+they are read whole (:class:`service.api.limits.BodyLimit`). The interactive OpenAPI documentation is at ``/docs``.
 """
 
 from __future__ import annotations
@@ -17,12 +18,13 @@ from fastapi import FastAPI
 
 from service.api.deps import Resources
 from service.api.errors import install_error_handlers
+from service.api.limits import BodyLimit
+from service.api.models import API_VERSION
 from service.api.routers import datasets, health, jobs
 from service.settings import Settings, get_settings
 
 __all__ = ["create_app", "is_loopback", "check_auth_config", "InsecureBindError"]
 
-API_VERSION = "1"
 
 
 class InsecureBindError(RuntimeError):
@@ -80,6 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings is not None:
         app.dependency_overrides[get_settings] = lambda: settings
     install_error_handlers(app)
+    app.add_middleware(BodyLimit, max_bytes=effective.max_body_bytes)
     app.include_router(jobs.router)
     app.include_router(datasets.router)
     app.include_router(health.router)

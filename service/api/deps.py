@@ -15,6 +15,7 @@ only on a loopback address.
 
 from __future__ import annotations
 
+import re
 import secrets
 import threading
 from collections.abc import Iterator
@@ -24,12 +25,13 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.api.errors import shorten
 from service.datasets import DatasetStorage
 from service.settings import Settings, get_settings
 from service.store import JobNotFound, JobRecord, JobStore
 
 __all__ = [
-    "SettingsDep", "StoreDep", "StorageDep", "AuthDep", "ReadAuthDep", "JobDep",
+    "SettingsDep", "StoreDep", "StorageDep", "AuthDep", "ReadAuthDep", "JobDep", "JobIdPath", "JOB_ID_PATTERN",
     "get_settings", "get_store", "get_storage", "require_token", "require_read_token", "job_or_404",
     "Resources",
 ]
@@ -135,13 +137,21 @@ AuthDep = Annotated[str | None, Depends(require_token)]
 ReadAuthDep = Annotated[str | None, Depends(require_read_token)]
 
 
-def job_or_404(job_id: Annotated[str, Path(description="Job id returned by POST /v1/jobs.")],
-               store: StoreDep) -> JobRecord:
-    """The job named in the path (404 if there is none)."""
+JOB_ID_PATTERN = "^[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}$"
+"""Job ids are uuid4 text (service.store.jobs): no other string names a job."""
+
+JobIdPath = Annotated[str, Path(description="Job id returned by POST /v1/jobs (a UUID).")]
+
+
+def job_or_404(job_id: JobIdPath, store: StoreDep) -> JobRecord:
+    """The job named in the path (404 if there is none; an id that is no UUID is not looked up)."""
     try:
+        if re.fullmatch(JOB_ID_PATTERN, job_id) is None:
+            raise JobNotFound(shorten(job_id))
         return store.get_job(job_id)
     except JobNotFound as exc:
-        raise HTTPException(404, f"{exc}; list jobs with GET /v1/jobs") from None
+        raise HTTPException(404, f"{exc}; job ids are UUIDs as returned by POST /v1/jobs; "
+                                 "list jobs with GET /v1/jobs") from None
 
 
 JobDep = Annotated[JobRecord, Depends(job_or_404)]

@@ -9,12 +9,16 @@ Every error is JSON ``{"detail": ...}``:
 
 Exceptions mapped here (store errors not caught by a route):
 
-    RequestValidationError        -> 422 (problems)
+    RequestValidationError        -> 422 (problems; a body that is not JSON is field ``body``)
     JobNotFound, VersionNotFound  -> 404
     JobNotActive                  -> 409
     IdempotencyConflict           -> 409
     ChecksumMismatch              -> 500 (the stored copy is corrupt; never served)
-    sqlalchemy DBAPIError         -> 503 (job store unreachable)
+    sqlalchemy OperationalError,
+    InterfaceError                -> 503 (job store unreachable; other database errors are bugs: 500)
+
+Values received are echoed shortened (:func:`shorten`: strings to 80 characters, lists and
+objects to their first entries, nesting to 4 levels), so a huge request never gets a huge answer.
 """
 
 from __future__ import annotations
@@ -25,12 +29,12 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import InterfaceError, OperationalError
 
 from service.api.models import ErrorMessage, ValidationErrorBody
 from service.store import ChecksumMismatch, IdempotencyConflict, JobNotActive, JobNotFound, VersionNotFound
 
-__all__ = ["problems_from_errors", "problem", "install_error_handlers", "ERROR_RESPONSES", "error_responses"]
+__all__ = ["problems_from_errors", "problem", "shorten", "install_error_handlers", "ERROR_RESPONSES", "error_responses"]
 
 # Where a pydantic error's context names the bound: the key and how to show it.
 _BOUNDS = (("gt", "> {}"), ("ge", ">= {}"), ("lt", "< {}"), ("le", "<= {}"),
@@ -56,40 +60,82 @@ def _allowed(e: dict[str, Any]) -> str | None:
         return str(ctx["allowed"])
     if "expected" in ctx:  # enums and literals
         return str(ctx["expected"])
+    if "pattern" in ctx:
+        return f"matching {ctx['pattern']}"
     bounds = [fmt.format(ctx[k]) for k, fmt in _BOUNDS if k in ctx]
     return " and ".join(bounds) or None
 
 
 def _message(e: dict[str, Any]) -> str:
+    if e["type"] == "json_invalid":
+        where = f" at character {e['loc'][-1]}" if isinstance(e["loc"][-1], int) else ""
+        reason = (e.get("ctx") or {}).get("error", "")
+        return f"the request body is not valid JSON{where}: {_text(str(reason))}".rstrip(": ")
     if e["type"] == "extra_forbidden":
-        return f"unknown key {e['loc'][-1]!r} is not allowed here (check the spelling)"
+        return f"unknown key {_text(str(e['loc'][-1]))!r} is not allowed here (check the spelling)"
     if e["type"] == "missing":
         return "this field is required"
-    msg = e["msg"]
+    msg = _text(e["msg"]) if len(e["msg"]) > 400 else e["msg"]
     if "received" in msg:
         return msg
-    value = repr(e.get("input"))
-    return f"{msg}; received {value if len(value) <= 80 else value[:77] + '...'}"
+    return f"{msg}; received {_text(repr(e.get('input')))}"
 
 
-def _jsonable(value: Any) -> Any:
+_TEXT_MAX, _ITEMS_MAX, _DEPTH_MAX = 80, 8, 4
+
+
+def _text(value: str) -> str:
+    # Lone surrogates (from JSON "\ud800") cannot be encoded in the answer: escape them.
+    value = value.encode("utf-8", "backslashreplace").decode("utf-8")
+    return value if len(value) <= _TEXT_MAX else value[:_TEXT_MAX - 3] + "..."
+
+
+def shorten(value: Any, depth: int = 0) -> Any:
+    """A JSON-safe, bounded copy of a received value for an error body."""
     if isinstance(value, float) and not math.isfinite(value):
         return repr(value)  # JSON has no nan/inf
-    if value is None or isinstance(value, (bool, int, float, str)):
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**30:
+        return _text(f"{value:.3e}")
+    if value is None or isinstance(value, (bool, int, float)):
         return value
+    if isinstance(value, str):
+        return _text(value)
+    if depth >= _DEPTH_MAX:
+        return "..."
     if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
+        head = [shorten(v, depth + 1) for v in value[:_ITEMS_MAX]]
+        return head + [f"... ({len(value)} items)"] if len(value) > _ITEMS_MAX else head
     if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    return repr(value)
+        items = list(value.items())
+        out = {_text(str(k)): shorten(v, depth + 1) for k, v in items[:_ITEMS_MAX]}
+        if len(items) > _ITEMS_MAX:
+            out["..."] = f"({len(items)} keys)"
+        return out
+    return _text(repr(value))
+
+
+PROBLEMS_MAX = 20
+"""Most problems listed in one 422 (a list of 10,000 bad entries is one problem repeated)."""
 
 
 def problems_from_errors(errors: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Pydantic / FastAPI error dicts -> 422 problem entries (field, message, allowed, received)."""
+    """Pydantic / FastAPI error dicts -> 422 problem entries (field, message, allowed, received);
+    past :data:`PROBLEMS_MAX` one last entry says how many more there were."""
     out = []
+    if len(errors) > PROBLEMS_MAX:
+        rest = len(errors) - PROBLEMS_MAX + 1
+        errors = errors[:PROBLEMS_MAX - 1]
+    else:
+        rest = 0
     for e in errors:
-        received = None if e["type"] == "missing" else _jsonable(e.get("input"))
-        out.append(problem(_field(tuple(e["loc"])), _message(e), _allowed(e), received))
+        loc = tuple(e["loc"])
+        if e["type"] == "json_invalid":
+            out.append(problem("body", _message(e), "a JSON object", None))
+            continue
+        received = None if e["type"] in ("missing", "json_invalid") else shorten(e.get("input"))
+        out.append(problem(_text(_field(loc)), _message(e), _allowed(e), received))
+    if rest:
+        out.append(problem("(more)", f"{rest} more problems not listed; fix the ones above and send again"))
     return out
 
 
@@ -124,8 +170,9 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _corrupt(_request: Request, exc: ChecksumMismatch) -> JSONResponse:
         return _detail(500, f"checksum verification failed, file not served: {exc}")
 
-    @app.exception_handler(DBAPIError)
-    async def _db_down(_request: Request, exc: DBAPIError) -> JSONResponse:
+    @app.exception_handler(OperationalError)
+    @app.exception_handler(InterfaceError)
+    async def _db_down(_request: Request, exc: OperationalError | InterfaceError) -> JSONResponse:
         reason = str(exc.orig or exc).strip().splitlines()[0]
         return _detail(503, f"job store unavailable ({type(exc.orig or exc).__name__}: {reason}); "
                             "check BSSRDF_DATABASE_URL and that the database is up, then retry",

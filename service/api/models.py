@@ -28,9 +28,15 @@ __all__ = [
     "ValidationErrorBody",
     "Health",
     "Readiness",
+    "VersionInfo",
+    "API_VERSION",
 ]
 
+API_VERSION = "1"
+
 IDEMPOTENCY_KEY_MAX = 200
+IDEMPOTENCY_KEY_PATTERN = "^[!-~]+$"
+"""Printable ASCII without spaces (what an HTTP header carries safely; no NUL for PostgreSQL)."""
 
 
 class JobCreate(BaseModel):
@@ -40,8 +46,8 @@ class JobCreate(BaseModel):
 
     spec: SimulationSpec = Field(description="The simulation spec (the schema package's SimulationSpec).")
     idempotency_key: str | None = Field(
-        None, min_length=1, max_length=IDEMPOTENCY_KEY_MAX,
-        description="Submitting again with the same key and spec returns the same job (200); "
+        None, min_length=1, max_length=IDEMPOTENCY_KEY_MAX, pattern=IDEMPOTENCY_KEY_PATTERN,
+        description="1..200 printable ASCII characters, no spaces. Submitting again with the same key and spec returns the same job (200); "
         "the same key with another spec is refused (409). Also accepted as the Idempotency-Key header.",
     )
 
@@ -186,3 +192,11 @@ class Health(BaseModel):
 class Readiness(BaseModel):
     status: str
     checks: dict[str, str]
+
+
+class VersionInfo(BaseModel):
+    """What code answers: the API version, the package version and its git commit."""
+
+    api: str
+    package: str | None
+    git_commit: str | None

@@ -8,6 +8,10 @@ from typing import Annotated
 from fastapi import APIRouter, HTTPException, Path
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import StreamingResponse
+from pydantic import AfterValidator
+from pydantic_core import PydanticCustomError
+
+from schema.names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
 
 from service.api.deps import ReadAuthDep, StorageDep, StoreDep
 from service.api.errors import error_responses
@@ -15,27 +19,42 @@ from service.api.models import DatasetPublic, DatasetVersionDetail, DatasetVersi
 from service.datasets import DatasetStorage, expected_files, verified_path
 from service.store import DatasetVersionRecord, JobStore, VersionNotFound
 
-__all__ = ["router", "parse_version"]
+__all__ = ["router", "parse_version", "NamePath", "VersionPath", "VERSION_MAX"]
 
 router = APIRouter(prefix="/v1/datasets", tags=["datasets"])
 
 _CHUNK = 1 << 20
 _MEDIA_TYPES = {".parquet": "application/vnd.apache.parquet", ".json": "application/json"}
 
-NamePath = Annotated[str, Path(description="Dataset name (the spec's name).")]
-VersionPath = Annotated[str, Path(description="Version number 1, 2, ... or `latest`.")]
+VERSION_MAX = 2**31 - 1
+"""Largest version number (the catalog's integer column)."""
+
+
+def _check_dataset_name(value: str) -> str:
+    try:
+        return check_name(value, "dataset name")
+    except InvalidName as exc:  # the one name rule (schema/names.py), as for specs and storage
+        raise PydanticCustomError("bad_name", str(exc).replace("{", "{{").replace("}", "}}")) from None
+
+
+NamePath = Annotated[str, Path(description=f"Dataset name (the spec's name): {NAME_RULE.format(n=NAME_MAX)}.",
+                               json_schema_extra={"pattern": NAME_PATTERN}),
+                     AfterValidator(_check_dataset_name)]
+VersionPath = Annotated[str, Path(description=f"Version number 1..{VERSION_MAX} or `latest`.",
+                                  json_schema_extra={"pattern": "^(latest|[1-9][0-9]{0,9})$"})]
 
 
 def parse_version(version: str) -> int | None:
     """``"3"`` -> 3, ``"latest"`` -> None; anything else is a 422 naming the allowed values."""
     if version == "latest":
         return None
-    if version.isascii() and version.isdigit() and int(version) >= 1:
+    if version.isascii() and version.isdigit() and len(version) <= 10 and 1 <= int(version) <= VERSION_MAX:
         return int(version)
+    shown = version if len(version) <= 40 else version[:37] + "..."
     raise RequestValidationError([{
-        "type": "version", "loc": ("path", "version"), "input": version,
-        "msg": f"version must be a positive integer or 'latest'; received {version!r}",
-        "ctx": {"allowed": "1, 2, ... or latest"},
+        "type": "version", "loc": ("path", "version"), "input": shown,
+        "msg": f"version must be an integer in [1, {VERSION_MAX}] or 'latest'; received {shown!r}",
+        "ctx": {"allowed": f"1..{VERSION_MAX} or latest"},
     }])
 
 

@@ -1,4 +1,5 @@
-"""``/healthz``, ``/readyz`` and ``/metrics`` (unversioned: probes and scrapers use fixed paths)."""
+"""``/healthz``, ``/readyz`` and ``/metrics`` (unversioned: probes and scrapers use fixed paths), and
+``/v1/version`` (the code version recorded in every dataset version)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ from fastapi.responses import JSONResponse, PlainTextResponse
 
 from service.api.deps import ReadAuthDep, StorageDep, StoreDep
 from service.api.errors import error_responses
-from service.api.models import Health, Readiness
+from schema.version import code_version
+from service.api.models import API_VERSION, Health, Readiness, VersionInfo
 from service.api.prometheus import CONTENT_TYPE, render_metrics
 
 __all__ = ["router"]
@@ -24,6 +26,13 @@ def healthz() -> Health:
 def _first_line(exc: BaseException) -> str:
     text = str(getattr(exc, "orig", None) or exc).strip()
     return f"{type(exc).__name__}: {text.splitlines()[0] if text else ''}"
+
+
+@router.get("/v1/version", summary="Code and API version", response_model=VersionInfo)
+def version() -> VersionInfo:
+    """The package version and git commit (as recorded in every dataset version's metadata) and
+    the API version. Needs no token: it tells a client what it talks to."""
+    return VersionInfo(api=API_VERSION, **code_version())
 
 
 @router.get("/readyz", summary="Readiness: job store and storage reachable", response_model=Readiness,

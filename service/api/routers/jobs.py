@@ -6,15 +6,20 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Response, status
 from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 
-from service.api.deps import AuthDep, JobDep, ReadAuthDep, StoreDep
+from service.api.deps import AuthDep, JobDep, ReadAuthDep, SettingsDep, StoreDep
 from service.api.errors import error_responses
-from service.api.models import IDEMPOTENCY_KEY_MAX, JobCreate, JobList, JobPublic
+from service.api.limits import spec_limit_problems
+from service.api.models import IDEMPOTENCY_KEY_MAX, IDEMPOTENCY_KEY_PATTERN, JobCreate, JobList, JobPublic
 from service.store import JobState
 
 __all__ = ["router"]
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+OFFSET_MAX = 2**31 - 1
+"""Largest list offset (bound so that no database integer overflows)."""
 
 
 def _idempotency_key(body: JobCreate, header: str | None) -> str | None:
@@ -39,9 +44,10 @@ def submit_job(
     _token: AuthDep,
     body: JobCreate,
     store: StoreDep,
+    settings: SettingsDep,
     response: Response,
     idempotency_key: Annotated[str | None, Header(
-        alias="Idempotency-Key", min_length=1, max_length=IDEMPOTENCY_KEY_MAX,
+        alias="Idempotency-Key", min_length=1, max_length=IDEMPOTENCY_KEY_MAX, pattern=IDEMPOTENCY_KEY_PATTERN,
         description="Same as the body's idempotency_key.")] = None,
 ) -> JobPublic:
     """Validate the spec, store the job (its shard tasks and merge task) and return it.
@@ -51,6 +57,9 @@ def submit_job(
     same spec returns the stored job with status 200; another spec under the same key is 409.
     """
     key = _idempotency_key(body, idempotency_key)
+    problems = spec_limit_problems(body.spec, settings)
+    if problems:
+        return JSONResponse({"detail": problems}, status_code=422)
     existing = store.job_by_idempotency_key(key) if key is not None else None
     job = store.submit(body.spec, idempotency_key=key)  # IdempotencyConflict -> 409
     if existing is not None:
@@ -65,7 +74,7 @@ def list_jobs(
     store: StoreDep,
     state: Annotated[JobState | None, Query(description="Only jobs in this state.")] = None,
     limit: Annotated[int, Query(ge=1, le=1000, description="Jobs per page.")] = 100,
-    offset: Annotated[int, Query(ge=0, description="Jobs to skip.")] = 0,
+    offset: Annotated[int, Query(ge=0, le=OFFSET_MAX, description="Jobs to skip.")] = 0,
 ) -> JobList:
     """Jobs, newest first (``progress`` is null here: read one job for it)."""
     jobs = store.list_jobs(state=state, limit=limit + 1, offset=offset)

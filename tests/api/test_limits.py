@@ -1,0 +1,196 @@
+"""Hostile and careless input on SQLite and PostgreSQL: every refusal is a 4xx naming the field,
+the limit and the value (shortened), nothing is stored, and no input reaches a 5xx.
+
+Limits: photons per job and estimated CPU seconds per shard (schema.estimate), request body size
+(413 before parsing), problem count and echoed values; overflowing integers in path and query
+parameters; strings PostgreSQL cannot store (NUL) or UTF-8 cannot encode (lone surrogates).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from urllib.parse import quote
+
+import pytest
+
+from schema import parse_spec
+from schema.estimate import estimate_shard
+from tests.api.conftest import AUTH, tiny_spec
+
+JSON = {**AUTH, "content-type": "application/json"}
+
+
+def job_count(store) -> int:
+    return len(store.list_jobs(limit=10_000))
+
+
+def one_problem(r, field: str) -> dict:
+    assert r.status_code == 422, r.text
+    mine = [p for p in r.json()["detail"] if p["field"] == field]
+    assert mine, r.json()
+    return mine[0]
+
+
+@pytest.mark.parametrize("path", [
+    "/v1/datasets/tiny/versions/9223372036854775808",
+    "/v1/datasets/tiny/versions/2147483648",
+    "/v1/datasets/tiny/versions/99999999999999999999999999999999",
+    "/v1/datasets/tiny/versions/9223372036854775808/files/radial.parquet",
+    "/v1/jobs?offset=99999999999999999999",
+    "/v1/jobs?offset=2147483648",
+    "/v1/jobs?limit=99999999999999999999",
+])
+def test_overflowing_integers_are_422_not_5xx(client, path):
+    r = client.get(path)
+    assert r.status_code == 422, r.text
+    p = r.json()["detail"][0]
+    assert p["allowed"] and "received" in p["message"], p
+
+
+@pytest.mark.parametrize("name", [".hidden", "-rf", "a b", "x" * 101, "a\x00b", "é"])
+def test_dataset_path_names_follow_the_one_name_rule(client, name):
+    r = client.get(f"/v1/datasets/{quote(name, safe='')}/versions")
+    p = one_problem(r, "path.name")
+    assert "starting with a letter or digit" in p["message"], p
+
+
+@pytest.mark.parametrize("job_id", ["missing-job", "a\x00b", "x" * 5000, "00000000-0000-0000-0000-00000000000G"])
+def test_malformed_job_ids_are_404_without_a_lookup(client, job_id):
+    job_id = quote(job_id, safe="")
+    for method, path in (("GET", f"/v1/jobs/{job_id}"), ("POST", f"/v1/jobs/{job_id}/cancel")):
+        r = client.request(method, path, headers=AUTH)
+        assert r.status_code == 404 and "UUID" in r.json()["detail"], r.text
+        assert len(r.content) < 1000
+
+
+def test_strings_postgresql_or_utf8_cannot_hold_are_refused(client, store):
+    r = client.post("/v1/jobs", json={"spec": tiny_spec(), "idempotency_key": "a\x00b"}, headers=AUTH)
+    assert one_problem(r, "idempotency_key")["allowed"] == "matching ^[!-~]+$"
+    r = client.post("/v1/jobs", json={"spec": tiny_spec()}, headers={**AUTH, "Idempotency-Key": "a b"})
+    assert r.status_code == 422
+    body = json.dumps({"spec": tiny_spec(description="SURROGATE")}).replace("SURROGATE", "a\\ud800b")
+    r = client.post("/v1/jobs", content=body.encode(), headers=JSON)
+    one_problem(r, "spec.description")
+    assert job_count(store) == 0
+
+
+def test_lone_surrogates_are_refused_by_the_spec_itself():
+    with pytest.raises(Exception, match="unicode string"):  # pydantic-core refuses them itself
+        parse_spec(tiny_spec(description="a\ud800b"))
+
+
+@pytest.mark.parametrize("body, reason", [
+    (b'{"spec": {"name": "x",, }}', "at character 22"),
+    (b"", "this field is required"),
+    (b"\xff\xfe", "not valid JSON"),
+    (b'{"spec": ', "not valid JSON"),
+])
+def test_malformed_json_is_reported_on_the_body(client, store, body, reason):
+    p = one_problem(client.post("/v1/jobs", content=body, headers=JSON), "body")
+    assert reason in p["message"], p
+    assert job_count(store) == 0
+
+
+@pytest.mark.parametrize("field, value", [("photons", True), ("seed", False), ("shards", "2"), ("photons", "200")])
+def test_numbers_are_strict_about_json_types(client, store, field, value):
+    p = one_problem(client.post("/v1/jobs", json={"spec": tiny_spec(**{field: value})}, headers=AUTH), f"spec.{field}")
+    assert "must be a JSON number" in p["message"] and p["allowed"] == "a JSON number", p
+    assert job_count(store) == 0
+
+
+def test_a_float_with_an_integral_value_is_still_an_integer(client):
+    r = client.post("/v1/jobs", json={"spec": tiny_spec(photons=2e2)}, headers=AUTH)
+    assert r.status_code == 201 and r.json()["spec"]["photons"] == 200
+
+
+def test_photons_per_job_limit(make_client, store, storage):
+    client = make_client(store, storage, max_job_photons=1000)
+    spec = tiny_spec(photons=600, incidence_deg=[0, 45])  # 1200 photons in all
+    p = one_problem(client.post("/v1/jobs", json={"spec": spec}, headers=AUTH), "spec.photons")
+    assert "600 x 2 x 1 = 1200" in p["message"] and "BSSRDF_MAX_JOB_PHOTONS" in p["message"]
+    assert p["allowed"] == "photons x angles x channels <= 1000" and p["received"] == 600
+    assert job_count(store) == 0
+    assert client.post("/v1/jobs", json={"spec": tiny_spec(photons=500, incidence_deg=[0, 45])},
+                       headers=AUTH).status_code == 201
+
+
+def test_the_issue_spec_of_a_trillion_photons_in_one_shard_is_refused(client, store):
+    spec = tiny_spec(photons=10**12, shards=1, batches_per_shard=2)
+    r = client.post("/v1/jobs", json={"spec": spec}, headers=AUTH)
+    fields = {p["field"] for p in r.json()["detail"]}
+    assert r.status_code == 422 and fields == {"spec.photons", "spec.shards"}, r.text
+    assert job_count(store) == 0
+
+
+def test_shard_cpu_limit_names_the_estimate_and_the_shards_needed(make_client, store, storage):
+    spec = tiny_spec(photons=4_000_000, shards=2, batches_per_shard=1)
+    cpu = estimate_shard(parse_spec(spec)).cpu_s
+    client = make_client(store, storage, max_shard_cpu_seconds=cpu / 3 * 1.001)
+    p = one_problem(client.post("/v1/jobs", json={"spec": spec}, headers=AUTH), "spec.shards")
+    assert f"{cpu:.4g} CPU seconds" in p["message"] and "use at least 6 shards" in p["message"], p
+    assert p["received"] == 2 and "BSSRDF_MAX_SHARD_CPU_SECONDS" in p["message"]
+    assert job_count(store) == 0
+    r = client.post("/v1/jobs", json={"spec": dict(spec, shards=6)}, headers=AUTH)
+    assert r.status_code == 201, r.text  # the count the message asked for is accepted
+    faster = make_client(store, storage, max_shard_cpu_seconds=cpu / 3 * 1.001, worker_speed=4.0)
+    assert faster.post("/v1/jobs", json={"spec": dict(spec, seed=99)}, headers=AUTH).status_code == 201
+
+
+def test_large_bodies_are_413_before_parsing(make_client, store, storage):
+    client = make_client(store, storage, max_body_bytes=4096)
+    r = client.post("/v1/jobs", content=b"x" * 5000, headers=JSON)
+    assert r.status_code == 413 and "5000 bytes" in r.json()["detail"] and "BSSRDF_MAX_BODY_BYTES" in r.json()["detail"]
+
+    def chunks():  # no Content-Length: cut off once past the limit
+        for _ in range(100):
+            yield b"x" * 1000
+
+    r = client.post("/v1/jobs", content=chunks(), headers=JSON)
+    assert r.status_code == 413, r.text
+    assert job_count(store) == 0
+    assert client.post("/v1/jobs", json={"spec": tiny_spec()}, headers=AUTH).status_code == 201
+
+
+def test_echoed_values_are_shortened(client, store):
+    r = client.post("/v1/jobs", json={"spec": tiny_spec(description="x" * 500_000)}, headers=AUTH)
+    p = one_problem(r, "spec.description")
+    assert len(r.content) < 2000 and len(p["received"]) <= 80, len(r.content)
+    r = client.post("/v1/jobs", json={"spec": tiny_spec(incidence_deg=list(range(90, 50_090)))}, headers=AUTH)
+    detail = r.json()["detail"]
+    assert r.status_code == 422 and len(detail) == 20 and detail[-1]["field"] == "(more)", detail[-1]
+    assert "49981 more problems" in detail[-1]["message"] and len(r.content) < 10_000
+    r = client.post("/v1/jobs", json={"spec": tiny_spec(medium={"preset": "y" * 10_000})}, headers=AUTH)
+    assert r.status_code == 422 and len(r.content) < 5000
+    assert job_count(store) == 0
+
+
+def test_version_endpoint_and_command():
+    from fastapi.testclient import TestClient
+
+    from schema.version import code_version
+    from service.api import create_app
+    from service.settings import Settings
+
+    with TestClient(create_app(Settings(api_tokens=["t"], read_open=False))) as c:
+        r = c.get("/v1/version")  # no token needed
+    assert r.status_code == 200 and r.json() == {"api": "1", **code_version()}
+    out = subprocess.run([sys.executable, "-m", "service.cli", "--version"], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == (
+        f"bssrdf-db {code_version()['package']} (commit {code_version()['git_commit'] or 'unknown'})")
+
+
+@pytest.mark.parametrize("value", ["tok1", "[1, 2]", '["a", ""]', "[not json"])
+def test_a_bad_token_setting_is_one_clear_line_not_a_traceback(value, tmp_path):
+    env = {"BSSRDF_API_TOKENS": value, "BSSRDF_DATA_DIR": str(tmp_path), "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-m", "service.cli", "serve"], capture_output=True, text=True, env=env,
+                         timeout=60)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "BSSRDF_API_TOKENS must be a JSON list of non-empty strings" in out.stderr
+    assert len(out.stderr.splitlines()) <= 3, out.stderr
+
+
+def test_serve_help_explains_tokens():
+    out = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--help"], capture_output=True, text=True)
+    assert "BSSRDF_API_TOKENS" in out.stdout and "Authorization: Bearer TOKEN" in out.stdout
