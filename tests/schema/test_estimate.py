@@ -57,3 +57,12 @@ def test_shard_estimate_scales_with_photons_shards_angles_and_bins():
     assert seconds_per_step(conn, speed=2.0) == pytest.approx(seconds_per_step(conn) / 2)
     rgb = parse_spec(dict(BASE, medium={"sigma_a": [0.1, 0.2, 0.3], "sigma_s": 0.9, "eta": 1.0}))
     assert job_photons(rgb) == 30_000 and estimate_shard(rgb).photons == 7500
+
+
+def test_a_sweep_counts_every_medium_and_its_shard_is_its_costliest_medium():
+    sweep = parse_spec({"name": "sw", "sweep": {"albedo": [0.5, 0.99], "g": [0.0, 0.8], "eta": [1.3]},
+                        "photons": 1000, "shards": 2, "estimator": "exits"})
+    assert job_photons(sweep) == 1000 * 4
+    e = estimate_shard(sweep)
+    assert e.photons == 500  # one medium, one channel
+    assert e.steps == pytest.approx(500 * max(steps_per_photon(a, g) for a in (0.5, 0.99) for g in (0.0, 0.8)))
