@@ -127,3 +127,71 @@ def test_a_corrupted_file_is_not_served(ds_client, published, name):
         with storage.fs.open_output_stream(path) as f:
             f.write(original)
     assert ds_client.get(f"/v1/datasets/tiny/versions/1/files/{name}").status_code == 200
+
+
+def _published_bytes(published, name: str) -> tuple[bytes, str]:
+    store, storage, _jobs = published
+    record = store.get_version("tiny", 1)
+    with storage.fs.open_input_stream(f"{record.uri}/{name}") as f:
+        data = f.read()
+    return data, hashlib.sha256(data).hexdigest()
+
+
+@pytest.mark.parametrize("name", ["radial.parquet", "metadata.json"])
+def test_head_etag_304_and_content_length(ds_client, published, name):
+    data, digest = _published_bytes(published, name)
+    url = f"/v1/datasets/tiny/versions/1/files/{name}"
+    get = ds_client.get(url)
+    assert get.headers["content-length"] == str(len(data)) and get.headers["accept-ranges"] == "bytes"
+    head = ds_client.head(url)
+    assert head.status_code == 200 and head.content == b""
+    assert {k: head.headers[k] for k in ("etag", "content-length", "content-type", "content-disposition")} == {
+        k: get.headers[k] for k in ("etag", "content-length", "content-type", "content-disposition")}
+    for tag in (f'"{digest}"', f'W/"{digest}"', f'"other", "{digest}"', "*"):
+        r = ds_client.get(url, headers={"If-None-Match": tag})
+        assert r.status_code == 304 and r.content == b"" and r.headers["etag"] == f'"{digest}"', tag
+    assert ds_client.get(url, headers={"If-None-Match": '"0000"'}).status_code == 200
+
+
+@pytest.mark.parametrize("header, part", [
+    ("bytes=0-9", slice(0, 10)), ("bytes=10-", slice(10, None)), ("bytes=-7", slice(-7, None)),
+    ("bytes=5-5", slice(5, 6)), ("bytes=3-999999999", slice(3, None)),
+])
+def test_range_requests(ds_client, published, header, part):
+    data, _ = _published_bytes(published, "radial.parquet")
+    r = ds_client.get("/v1/datasets/tiny/versions/1/files/radial.parquet", headers={"Range": header})
+    assert r.status_code == 206 and r.content == data[part], header
+    start = range(len(data))[part][0]
+    assert r.headers["content-range"] == f"bytes {start}-{start + len(r.content) - 1}/{len(data)}"
+    assert r.headers["content-length"] == str(len(r.content))
+
+
+@pytest.mark.parametrize("header, status", [
+    ("bytes=999999999-", 416), ("bytes=-0", 416), ("bytes=0-1,4-5", 200), ("lines=1-2", 200), ("bytes=9-2", 200),
+    ("bytes=x-y", 200),
+])
+def test_unsatisfiable_and_ignored_ranges(ds_client, published, header, status):
+    data, _ = _published_bytes(published, "radial.parquet")
+    r = ds_client.get("/v1/datasets/tiny/versions/1/files/radial.parquet", headers={"Range": header})
+    assert r.status_code == status, header
+    if status == 416:
+        assert r.headers["content-range"] == f"bytes */{len(data)}"
+    else:
+        assert r.content == data
+
+
+def test_a_corrupted_file_is_not_served_to_head_or_range_either(ds_client, published):
+    store, storage, _jobs = published
+    path = f"{store.get_version('tiny', 1).uri}/summary.json"
+    data, digest = _published_bytes(published, "summary.json")
+    try:
+        with storage.fs.open_output_stream(path) as f:
+            f.write(data[:-1] + b" ")
+        url = "/v1/datasets/tiny/versions/1/files/summary.json"
+        assert ds_client.head(url).status_code == 500
+        assert ds_client.get(url, headers={"Range": "bytes=0-3"}).status_code == 500
+        # the client that already holds the published bytes is told so without a read
+        assert ds_client.get(url, headers={"If-None-Match": f'"{digest}"'}).status_code == 304
+    finally:
+        with storage.fs.open_output_stream(path) as f:
+            f.write(data)

@@ -2,29 +2,27 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Path
+from fastapi import APIRouter, HTTPException, Path, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import StreamingResponse
+from fastapi.responses import Response, StreamingResponse
 from pydantic import AfterValidator
 from pydantic_core import PydanticCustomError
 
 from schema.names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
 
 from service.api.deps import ReadAuthDep, StorageDep, StoreDep
-from service.api.errors import error_responses
+from service.api.downloads import DOWNLOAD_RESPONSES, file_response
+from service.api.errors import error_responses, shorten
 from service.api.models import DatasetPublic, DatasetVersionDetail, DatasetVersionPublic, dataset_from_record
-from service.datasets import DatasetStorage, expected_files, verified_path
+from service.datasets import expected_files
 from service.store import DatasetVersionRecord, JobStore, VersionNotFound
 
 __all__ = ["router", "parse_version", "NamePath", "VersionPath", "VERSION_MAX"]
 
 router = APIRouter(prefix="/v1/datasets", tags=["datasets"])
 
-_CHUNK = 1 << 20
-_MEDIA_TYPES = {".parquet": "application/vnd.apache.parquet", ".json": "application/json"}
 
 VERSION_MAX = 2**31 - 1
 """Largest version number (the catalog's integer column)."""
@@ -92,34 +90,25 @@ def get_version(_token: ReadAuthDep, name: NamePath, version: VersionPath, store
     return DatasetVersionDetail.from_record(_version(store, name, version))
 
 
-def _stream(storage: DatasetStorage, path: str) -> Iterator[bytes]:
-    with storage.fs.open_input_stream(path) as f:
-        while chunk := f.read(_CHUNK):
-            yield chunk
-
-
-@router.get(
+@router.api_route(
     "/{name}/versions/{version}/files/{filename}",
+    methods=["GET", "HEAD"],
     summary="Download a file of a version",
     response_class=StreamingResponse,
-    responses={200: {"content": {t: {} for t in _MEDIA_TYPES.values()},
-                     "description": "The file, after its sha256 matched the published checksum "
-                     "(also sent as the ETag)."},
-               **error_responses(401, 404, 422, 500, 503)},
+    responses={**DOWNLOAD_RESPONSES, **error_responses(401, 404, 422, 500, 503)},
 )
-def download_file(_token: ReadAuthDep, name: NamePath, version: VersionPath, store: StoreDep, storage: StorageDep,
+def download_file(_token: ReadAuthDep, request: Request, name: NamePath, version: VersionPath, store: StoreDep,
+                  storage: StorageDep,
                   filename: Annotated[str, Path(description="radial.parquet, bins.parquet, summary.parquet, "
-                                                             "summary.json or metadata.json")]) -> StreamingResponse:
+                                                             "summary.json or metadata.json")]) -> Response:
     """One of the version's files, verified against the sha256 recorded at publish time; a
-    corrupt copy is never served (500). Only the files the version lists exist here."""
+    corrupt copy is never served (500). Only the files the version lists exist here. HEAD,
+    ``If-None-Match`` (304) and ``Range`` (206) work as for any static file
+    (:mod:`service.api.downloads`)."""
     record = _version(store, name, version)
     expected = expected_files(record)
     if filename not in expected:  # only catalogued names: no path ever comes from the request
-        raise HTTPException(404, f"{record.name} v{record.version} has no file {filename!r}; "
+        raise HTTPException(404, f"{record.name} v{record.version} has no file {shorten(filename)!r}; "
                                  f"available: {', '.join(sorted(expected))}")
-    path = verified_path(storage, record, filename, expected[filename])
-    suffix = filename[filename.rfind("."):]
-    headers = {"ETag": f'"{expected[filename]}"',
-               "Content-Disposition": f'attachment; filename="{record.name}-v{record.version}-{filename}"'}
-    return StreamingResponse(_stream(storage, path), media_type=_MEDIA_TYPES.get(suffix, "application/octet-stream"),
-                             headers=headers)
+    return file_response(request, storage, record, filename, expected[filename],
+                         download_name=f"{record.name}-v{record.version}-{filename}")
