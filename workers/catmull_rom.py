@@ -25,6 +25,7 @@ __all__ = [
     "invert_catmull_rom",
     "sample_catmull_rom_2d",
     "interval_slopes",
+    "negative_mass",
 ]
 
 
@@ -184,3 +185,27 @@ def sample_catmull_rom_2d(nodes1, nodes2, values, cdf, alpha: float, u) -> tuple
     width = nodes2[i + 1] - nodes2[i]
     t, f = _solve_segment((target - c_row[i]) / width, f0, f1, d0, d1)
     return nodes2[i] + width * t, f, f / total
+
+
+def negative_mass(nodes, values) -> np.ndarray:
+    """Integral of min(spline, 0) over [x_0, x_{n-1}] (<= 0): the negative lobes a Catmull-Rom
+    spline of non-negative values can have where they fall steeply (pbrt's Pdf_Sr clamps them to
+    0, and its sampler never lands there). Exact: each interval's cubic is split at its real roots
+    in (0, 1) and the negative pieces integrated with the cubic's antiderivative. ``values`` may
+    have leading axes (one row per spline)."""
+    nodes, values = np.asarray(nodes, dtype=np.float64), np.asarray(values, dtype=np.float64)
+    rows = values.reshape(-1, values.shape[-1])
+    out = np.zeros(len(rows))
+    i = np.arange(len(nodes) - 1)
+    width = nodes[1:] - nodes[:-1]
+    for k, row in enumerate(rows):
+        f0, f1, d0, d1 = interval_slopes(nodes, row, i)
+        # p(t) = a t^3 + b t^2 + c t + f0 (the Hermite form of the module docstring expanded)
+        a, b, c = 2 * f0 - 2 * f1 + d0 + d1, -3 * f0 + 3 * f1 - 2 * d0 - d1, d0
+        for j in range(len(i)):
+            roots = np.roots([a[j], b[j], c[j], f0[j]]) if a[j] or b[j] or c[j] else np.array([])
+            cuts = np.unique(np.concatenate([[0.0, 1.0], [r.real for r in roots if abs(r.imag) < 1e-12 and 0 < r.real < 1]]))
+            F, _ = _hermite_integral(cuts, f0[j], f1[j], d0[j], d1[j])
+            pieces = np.diff(F)
+            out[k] += width[j] * pieces[pieces < 0].sum()
+    return out.reshape(values.shape[:-1])

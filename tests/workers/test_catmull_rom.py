@@ -15,6 +15,7 @@ from workers.catmull_rom import (
     catmull_rom_weights,
     integrate_catmull_rom,
     invert_catmull_rom,
+    negative_mass,
     sample_catmull_rom_2d,
 )
 
@@ -104,3 +105,13 @@ def test_sample_2d_quantiles_invert_the_cdf():
                               limit=200)[0]
         assert mass / norm == pytest.approx(ui, abs=1e-9)
     assert math.isclose(x[0], 0.0, abs_tol=1e-12)
+
+
+def test_negative_mass_is_the_integral_of_the_negative_lobes():
+    values = np.array([0.5, 0.4, 0.0, 0.0, 0.3, 0.01, 0, 0, 0.2, 0.0, 0, 0, 0])
+    x = np.linspace(0, NODES[-1], 2_000_001)
+    f = catmull_rom(NODES, values, x)
+    assert negative_mass(NODES, values) == pytest.approx(np.trapezoid(np.minimum(f, 0), x), rel=1e-6)
+    assert negative_mass(NODES, values) < 0
+    np.testing.assert_array_equal(negative_mass(NODES, np.stack([1.0 + NODES, values])),
+                                  [0.0, negative_mass(NODES, values)])  # a line has none

@@ -1,0 +1,130 @@
+"""The ``pbrt`` export: pbrt's tabulated radial profile, one table per (estimator, g, eta).
+
+What pbrt's ``TabulatedBSSRDF`` samples (workers.tabulated), measured instead of computed by
+photon beam diffusion. Rows: the albedos at (g, eta) of the dataset's media and channels
+(a sweep's albedo axis; rhoSamples must be distinct). Columns: pbrt's radius nodes, which
+requires the radial spacing ``"pbrt"`` (bins centred on the nodes). Each entry is
+
+    profile[i, j] = f_i(r_j),  f = the density in optical radius r sigma_t of the flux leaving
+                    per unit power entered at normal incidence: Rd(r) / (1 - R_spec) times
+                    2 pi r, exit Fresnel included (pbrt's normalisation of its table),
+
+single plus multiple scattering, from the bin masses by :func:`workers.exports.nodes.node_values`
+(bins centred on the nodes, corrected for the local power-law slope, with the estimated error
+``profileNodeError``). rhoEff and profileCDF are the Catmull-Rom integrals of the rows, as pbrt
+computes them (``IntegrateCatmullRom``), so a pbrt loader that recomputes them gets the same.
+Standard errors: ``profileStderr`` from the bins'; ``rhoEffStderr`` is the standard error of the
+measured total Rd / (1 - R_spec) (the batch estimate of the total, with the covariance of the
+bins), which rhoEff estimates up to the part beyond the last node and the spline's integration
+error (< 1e-3 relative on pbrt's nodes, tests/workers/test_tabulated.py).
+
+As in pbrt's own diffusion tables, the Catmull-Rom spline can dip below 0 where a profile falls
+steeply (or to bins without events); pbrt's Pdf_Sr clamps there and its sampler never lands
+there, so the two differ by that mass, reported per albedo as ``profileNegativeMass``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from schema.bins import pbrt_radius_nodes
+from workers.catmull_rom import integrate_catmull_rom, negative_mass
+
+from .nodes import check_pbrt_edges, node_values
+from .pbrt_io import PbrtTable, write_pbrt_binary, write_pbrt_json
+from .profiles import radial_profiles, summary_rows
+from .source import ExportError, ExportSource
+
+__all__ = ["pbrt_tables", "write_pbrt", "NORMALISATION"]
+
+NORMALISATION = ("per unit power entered at normal incidence (the stored tables divided by 1 - R_spec), "
+                 "exit Fresnel transmission included, single + multiple scattering")
+UNITS = {"radiusSamples": "optical radius r sigma_t", "profile": "1 / optical radius (2 pi r Sr, sigma_t = 1)",
+         "rhoEff": "dimensionless", "profileCDF": "dimensionless"}
+NODE_VALUES = ("bins centred on the nodes in log r (radial spacing 'pbrt'), mass / width corrected by the "
+               "local power-law slope b h / sinh(b h); profileNodeError estimates the error this adds "
+               "(workers/exports/nodes.py)")
+
+
+def _file_stem(estimator: str, g: float, eta: float) -> str:
+    return f"pbrt-{estimator}-g{g:+.4f}-eta{eta:.4f}"
+
+
+def pbrt_tables(source: ExportSource) -> list[PbrtTable]:
+    """Every (estimator, g, eta) table of the dataset (normal incidence, component total)."""
+    spec = source.spec
+    if spec.bins.radial.spacing != "pbrt":
+        raise ExportError(
+            f'the pbrt export needs bins centred on pbrt\'s radius nodes: give "bins": {{"radial": {{"count": 64, '
+            f'"spacing": "pbrt"}}}} in the spec; {source.label} has radial spacing {spec.bins.radial.spacing!r}')
+    if 0.0 not in spec.incidence_deg:
+        raise ExportError(f"the pbrt export needs normal incidence (0 in incidence_deg); {source.label} has "
+                          f"{spec.incidence_deg}")
+    profiles = radial_profiles(source.tables["radial"])
+    summary = summary_rows(source.tables["summary"])
+    groups: dict[tuple[str, float, float], list] = {}
+    for key, prof in profiles.items():
+        est, medium, inc, channel, comp = key
+        if inc == 0.0 and comp == "total":
+            groups.setdefault((est, prof.g, prof.eta), []).append((prof.albedo, prof, summary[key], source.sigma_t(medium, channel)))
+    return [_table(source, est, g, eta, rows) for (est, g, eta), rows in sorted(groups.items())]
+
+
+def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: list) -> PbrtTable:
+    rows.sort(key=lambda row: row[0])
+    albedos = [row[0] for row in rows]
+    if len(albedos) < 2 or len(set(albedos)) != len(albedos):
+        raise ExportError(
+            f"a pbrt table needs at least 2 distinct albedos at (g, eta) = ({g}, {eta}); {source.label} has "
+            f"{albedos[:8]} ({estimator}): measure a sweep over albedo, e.g. \"sweep\": {{\"albedo\": "
+            f"{{\"count\": 100, \"spacing\": \"pbrt\"}}, \"g\": [{g}], \"eta\": [{eta}]}}")
+    columns: dict[str, list] = {k: [] for k in ("profile", "stderr", "error", "measured", "measured_se", "beyond", "photons")}
+    for _albedo, prof, summ, sigma_t in rows:
+        edges = np.concatenate([prof.r_lo_mm, prof.r_hi_mm[-1:]]) * sigma_t
+        if not check_pbrt_edges(edges):
+            raise ExportError(f"medium {prof.key[1]} channel {prof.key[3]} of {source.label}: radial edges are not "
+                              "pbrt's nodes in optical radii")
+        entered = 1.0 - summ["R_spec"]
+        m, m_se = prof.masses
+        values, se, err = node_values(m / entered, m_se / entered)
+        columns["profile"].append(values)
+        columns["stderr"].append(se)
+        columns["error"].append(err)
+        columns["measured"].append(summ["Rd"] / entered)
+        columns["measured_se"].append(summ["Rd_stderr"] / entered)
+        columns["beyond"].append(summ["Rd_beyond_rmax"] / entered)
+        columns["photons"].append(float(summ["photons"]))
+    radius = pbrt_radius_nodes(len(rows[0][1].r_lo_mm))
+    profile = np.stack(columns["profile"])
+    rho_eff, cdf = integrate_catmull_rom(radius, profile)
+    meta = {
+        "estimator": estimator,
+        "units": UNITS,
+        "normalisation": NORMALISATION,
+        "nodeValues": NODE_VALUES,
+        "rhoEffStderrMeaning": "standard error of the measured total Rd / (1 - R_spec)",
+        "rhoEffMonotone": bool(np.all(np.diff(rho_eff) > 0)),
+        "provenance": source.provenance("pbrt"),
+    }
+    return PbrtTable(
+        g=g, eta=eta, rho_samples=np.array([row[0] for row in rows], dtype=np.float64), radius_samples=radius,
+        profile=profile, rho_eff=rho_eff, profile_cdf=cdf, profile_stderr=np.stack(columns["stderr"]),
+        rho_eff_stderr=np.array(columns["measured_se"]), profile_node_error=np.stack(columns["error"]),
+        rho_eff_measured=np.array(columns["measured"]), rho_eff_measured_stderr=np.array(columns["measured_se"]),
+        rho_beyond_rmax=np.array(columns["beyond"]), photons=np.array(columns["photons"]),
+        profile_negative_mass=negative_mass(radius, profile), meta=meta,
+    )
+
+
+def write_pbrt(source: ExportSource, out_dir: str | Path) -> list[str]:
+    """Write ``pbrt-EST-gG-etaE.json`` and ``.bin`` per table into ``out_dir``; the file names."""
+    out = Path(out_dir)
+    names = []
+    for t in pbrt_tables(source):
+        stem = _file_stem(t.meta["estimator"], t.g, t.eta)
+        write_pbrt_json(t, out / f"{stem}.json")
+        write_pbrt_binary(t, out / f"{stem}.bin")
+        names += [f"{stem}.json", f"{stem}.bin"]
+    return names
