@@ -22,6 +22,7 @@ SUBCOMMANDS = (
     "service.worker",  # worker: claim, run, commit
     "service.serve",  # serve: the HTTP API
     "service.client",  # submit, status, datasets
+    "service.export",  # export: a version's export as files
 )
 
 

@@ -33,7 +33,7 @@ from service.store import DatasetVersionRecord
 __all__ = ["file_response", "parse_range", "etag_matches", "MEDIA_TYPES", "DOWNLOAD_RESPONSES"]
 
 _CHUNK = 1 << 20
-MEDIA_TYPES = {".parquet": "application/vnd.apache.parquet", ".json": "application/json"}
+MEDIA_TYPES = {".parquet": "application/vnd.apache.parquet", ".json": "application/json", ".zip": "application/zip"}
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
 
 

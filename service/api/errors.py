@@ -191,5 +191,6 @@ ERROR_RESPONSES: dict[int, dict[str, Any]] = {
     422: {"model": ValidationErrorBody,
           "description": "Invalid input: every bad field with the allowed range and the value received."},
     500: {"model": ErrorMessage, "description": "A stored file failed checksum verification."},
+    501: {"model": ErrorMessage, "description": "The server lacks an optional package this needs (named)."},
     503: {"model": ErrorMessage, "description": "The job store or storage is unreachable."},
 }

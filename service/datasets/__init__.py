@@ -5,7 +5,8 @@
     v.read_table("radial.parquet")
 
 Modules: :mod:`.storage` (layout, staging, atomic publish, verified reads), :mod:`.metadata`
-(metadata.json, code version), :mod:`.publish` (the merge task run by workers).
+(metadata.json, code version), :mod:`.publish` (the merge task run by workers), :mod:`.exports`
+(exports made once and stored beside a version; imported by name, it pulls in workers.exports).
 """
 
 from service.datasets.metadata import build_metadata

@@ -16,7 +16,7 @@ from service.store.errors import (
     StoreError,
     VersionNotFound,
 )
-from service.store.records import DatasetRecord, DatasetVersionRecord, JobProgress, JobRecord, Lease
+from service.store.records import DatasetRecord, DatasetVersionRecord, ExportRecord, JobProgress, JobRecord, Lease
 from service.store.retry import RetryDecision, RetryPolicy, decide_retry
 from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
 from service.store.store import JobStore
@@ -28,6 +28,7 @@ __all__ = [
     "Lease",
     "DatasetRecord",
     "DatasetVersionRecord",
+    "ExportRecord",
     "JobState",
     "TaskState",
     "TaskKind",

@@ -11,7 +11,7 @@ from typing import Any
 
 from service.store.states import JobState, TaskKind
 
-__all__ = ["JobRecord", "Lease", "JobProgress", "DatasetVersionRecord", "DatasetRecord"]
+__all__ = ["JobRecord", "Lease", "JobProgress", "DatasetVersionRecord", "DatasetRecord", "ExportRecord"]
 
 
 @dataclass(frozen=True)
@@ -106,3 +106,18 @@ class DatasetRecord:
     latest_version: int
     versions: int
     updated_at: float
+
+
+@dataclass(frozen=True)
+class ExportRecord:
+    """A stored export of a version (row of ``dataset_exports``): its archive ``filename``
+    (relative to the version's directory), sha256, size and manifest."""
+
+    name: str
+    version: int
+    format: str
+    filename: str
+    sha256: str
+    bytes: int
+    created_at: float
+    meta: dict[str, Any] = field(repr=False)  # export.json: provenance and the archive's files

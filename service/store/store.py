@@ -9,6 +9,7 @@ from alembic import command
 from alembic.config import Config
 
 from service.store.catalog import CatalogMixin
+from service.store.exports import ExportsMixin
 from service.store.jobs import JobsMixin
 from service.store.queue import QueueMixin
 from service.store.retry import RetryPolicy
@@ -21,8 +22,8 @@ MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 _PG_MIGRATION_LOCK = 0x6273_7372_6466  # arbitrary advisory-lock key ("bssrdf")
 
 
-class JobStore(JobsMixin, QueueMixin, CatalogMixin):
-    """Jobs, the shard/merge lease queue and the dataset catalog in one SQL database.
+class JobStore(JobsMixin, QueueMixin, CatalogMixin, ExportsMixin):
+    """Jobs, the shard/merge lease queue, the dataset catalog and its exports in one SQL database.
 
     ``JobStore(url)`` works for ``sqlite:///FILE`` (one host) and ``postgresql+psycopg://...``
     (many hosts) with the same code; ``migrate=True`` applies the Alembic migrations on open.

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sqlalchemy as sa
 
-__all__ = ["metadata", "jobs", "tasks", "shard_results", "dataset_versions"]
+__all__ = ["metadata", "jobs", "tasks", "shard_results", "dataset_versions", "dataset_exports"]
 
 metadata = sa.MetaData()
 
@@ -78,4 +78,19 @@ dataset_versions = sa.Table(
     sa.Column("job_id", sa.String(36), sa.ForeignKey("jobs.id"), nullable=True),
     sa.Column("meta", sa.JSON, nullable=False),  # metadata.json content + its own sha256
     sa.UniqueConstraint("name", "version", name="uq_dataset_versions_name_version"),
+)
+
+dataset_exports = sa.Table(
+    "dataset_exports",
+    metadata,
+    # One stored export per (version, format), made on first request (migration 0002).
+    sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("version_id", sa.Integer, sa.ForeignKey("dataset_versions.id", ondelete="CASCADE"), nullable=False),
+    sa.Column("format", sa.String(32), nullable=False),
+    sa.Column("filename", sa.Text, nullable=False),  # archive path relative to the version directory
+    sa.Column("sha256", sa.String(64), nullable=False),
+    sa.Column("bytes", sa.BigInteger, nullable=False),
+    sa.Column("created_at", sa.Float, nullable=False),
+    sa.Column("meta", sa.JSON, nullable=False),  # the export's manifest: provenance and its files
+    sa.UniqueConstraint("version_id", "format", name="uq_dataset_exports_version_format"),
 )

@@ -18,7 +18,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from schema import META_RUN, SimulationSpec, parse_spec
+from schema import META_RUN, META_SPEC, SimulationSpec, parse_spec
 from schema.version import code_version
 
 __all__ = ["ExportSource", "ExportError", "TABLES", "table_arrays"]
@@ -45,18 +45,24 @@ class ExportSource:
     tables_sha256: dict[str, str]
 
     @classmethod
-    def from_directory(cls, path: str | Path, *, name: str | None = None, version: int | None = None,
-                       sha256: dict[str, str] | None = None) -> "ExportSource":
-        """Read radial/bins/summary.parquet of a directory; the spec comes from the tables'
-        metadata. ``sha256``: the published checksums (computed from the files if not given)."""
+    def from_tables(cls, tables: dict[str, pa.Table], sha256: dict[str, str], *, name: str | None = None,
+                    version: int | None = None) -> "ExportSource":
+        """Stored tables (keys radial, bins, summary) with their sha256 by file name
+        (``radial.parquet``, ...); the spec comes from the tables' metadata."""
+        missing = [t for t in TABLES if t not in tables or f"{t}.parquet" not in sha256]
+        if missing:
+            raise ExportError(f"an export needs the tables {', '.join(TABLES)} and their sha256; missing {missing}")
+        spec = parse_spec(tables["radial"].schema.metadata[META_SPEC].decode("utf-8"))
+        digests = {f"{t}.parquet": sha256[f"{t}.parquet"] for t in TABLES}
+        return cls(name or spec.name, version, spec, spec.spec_hash(), {t: tables[t] for t in TABLES}, digests)
+
+    @classmethod
+    def from_directory(cls, path: str | Path, *, name: str | None = None, version: int | None = None) -> "ExportSource":
+        """The tables of a directory (a ``bssrdf simulate`` output), sha256 computed from the files."""
         path = Path(path)
-        tables, digests = {}, {}
-        for t in TABLES:
-            file = path / f"{t}.parquet"
-            tables[t] = pq.read_table(file)
-            digests[f"{t}.parquet"] = (sha256 or {}).get(f"{t}.parquet") or hashlib.sha256(file.read_bytes()).hexdigest()
-        spec = parse_spec(tables["radial"].schema.metadata[b"bssrdf.spec"].decode("utf-8"))
-        return cls(name or spec.name, version, spec, spec.spec_hash(), tables, digests)
+        tables = {t: pq.read_table(path / f"{t}.parquet") for t in TABLES}
+        digests = {f"{t}.parquet": hashlib.sha256((path / f"{t}.parquet").read_bytes()).hexdigest() for t in TABLES}
+        return cls.from_tables(tables, digests, name=name, version=version)
 
     @property
     def label(self) -> str:

@@ -1,4 +1,4 @@
-"""``/v1/datasets``: published dataset versions, their metadata, summaries and files."""
+"""``/v1/datasets``: published dataset versions, their metadata, summaries, files and exports."""
 
 from __future__ import annotations
 
@@ -17,7 +17,9 @@ from service.api.downloads import DOWNLOAD_RESPONSES, file_response
 from service.api.errors import error_responses, shorten
 from service.api.models import DatasetPublic, DatasetVersionDetail, DatasetVersionPublic, dataset_from_record
 from service.datasets import expected_files
+from service.datasets.exports import ensure_export
 from service.store import DatasetVersionRecord, JobStore, VersionNotFound
+from workers.exports import FORMATS, ExportError, MissingDependency
 
 __all__ = ["router", "parse_version", "NamePath", "VersionPath", "VERSION_MAX"]
 
@@ -112,3 +114,37 @@ def download_file(_token: ReadAuthDep, request: Request, name: NamePath, version
                                  f"available: {', '.join(sorted(expected))}")
     return file_response(request, storage, record, filename, expected[filename],
                          download_name=f"{record.name}-v{record.version}-{filename}")
+
+
+def _format_problem(fmt: str, message: str) -> RequestValidationError:
+    return RequestValidationError([{"type": "export_format", "loc": ("path", "format"), "input": shorten(fmt),
+                                    "msg": message, "ctx": {"allowed": ", ".join(FORMATS)}}])
+
+
+@router.api_route(
+    "/{name}/versions/{version}/exports/{format}",
+    methods=["GET", "HEAD"],
+    summary="Download an export of a version (made once, then stored beside it)",
+    response_class=StreamingResponse,
+    responses={**DOWNLOAD_RESPONSES, **error_responses(401, 404, 422, 500, 501, 503)},
+)
+def download_export(_token: ReadAuthDep, request: Request, name: NamePath, version: VersionPath, store: StoreDep,
+                    storage: StorageDep,
+                    format: Annotated[str, Path(description=f"Export format: {', '.join(FORMATS)}.")]) -> Response:
+    """The export as a zip archive: its files and ``export.json`` (dataset, version, spec hash,
+    code version, the sha256 of the tables it came from and of every file in it). The first
+    request makes it from the version's verified tables and stores it beside the version with
+    its sha256 (which is the ETag); later requests serve those bytes, with HEAD, If-None-Match
+    and Range as for the version's files. 422 when the dataset cannot be exported in this format
+    (the message says what the spec needs), 501 when the server lacks an optional package."""
+    record = _version(store, name, version)
+    if format not in FORMATS:
+        raise _format_problem(format, f"export format must be one of {', '.join(FORMATS)}; received {shorten(format)!r}")
+    try:
+        record, export = ensure_export(store, storage, record.name, record.version, format)
+    except MissingDependency as exc:
+        raise HTTPException(501, f"{exc} on the API server") from None
+    except ExportError as exc:
+        raise _format_problem(format, f"{record.name} v{record.version} cannot be exported as {format}: {exc}") from None
+    return file_response(request, storage, record, export.filename, export.sha256,
+                         download_name=f"{record.name}-v{record.version}-{format}.zip")
