@@ -1,6 +1,6 @@
 """Client commands of the HTTP API: ``bssrdf submit``, ``bssrdf status``, ``bssrdf datasets``.
 
-    bssrdf submit SPEC.json --api URL [--token T] [--idempotency-key K] [--wait] [--json]
+    bssrdf submit SPEC.json --api URL [--token T] [--idempotency-key K] [--force] [--wait] [--json]
     bssrdf status JOB --api URL [--follow] [--json]
     bssrdf datasets --api URL [NAME [VERSION]] [--download FILE [-o PATH]] [--json]
 
@@ -96,10 +96,12 @@ class ApiClient:
     def get_json(self, path: str, **kwargs) -> Any:
         return self.request("GET", path, **kwargs).json()
 
-    def submit(self, spec: Any, idempotency_key: str | None = None) -> dict[str, Any]:
+    def submit(self, spec: Any, idempotency_key: str | None = None, force: bool = False) -> dict[str, Any]:
         body = {"spec": spec}
         if idempotency_key:
             body["idempotency_key"] = idempotency_key
+        if force:
+            body["force"] = True
         return self.request("POST", "/v1/jobs", json=body).json()
 
     def job(self, job_id: str) -> dict[str, Any]:
@@ -181,6 +183,10 @@ def _client(args: argparse.Namespace) -> ApiClient:
     return ApiClient(args.api, args.token)
 
 
+EXISTING = {"idempotency_key": "job (same idempotency key)", "job": "existing job (same spec and seed)",
+            "version": "existing job (same spec and seed, already published)"}
+
+
 def cmd_submit(args: argparse.Namespace) -> int:
     try:
         spec = json.loads(Path(args.spec).read_text(encoding="utf-8"))
@@ -189,8 +195,12 @@ def cmd_submit(args: argparse.Namespace) -> int:
         return 2
     client = _client(args)
     try:
-        job = client.submit(spec, args.idempotency_key)
-        print(f"job {job['id']} {job['state']} ({job['name']}, {job['shards']} shards)", file=sys.stderr)
+        job = client.submit(spec, args.idempotency_key, force=args.force)
+        print(f"{EXISTING.get(job.get('existing'), 'job')} {job['id']} {job['state']} ({job['name']}, "
+              f"{job['shards']} shards)", file=sys.stderr)
+        if job.get("existing") == "version":
+            print(f"dataset {job['dataset_name']} version {job['dataset_version']} has this spec and seed: nothing "
+                  "recomputed (--force runs it again)", file=sys.stderr)
         if not args.wait:
             print(json.dumps(job, sort_keys=True) if args.json else job["id"])
             return 0
@@ -313,6 +323,8 @@ def add_parser(subparsers) -> None:
                               description="Submit a simulation spec (JSON file) to the API; --wait follows it.")
     p.add_argument("spec", help="simulation spec (JSON)")
     p.add_argument("--idempotency-key", default=None, help="resubmitting with this key returns the same job")
+    p.add_argument("--force", action="store_true", help="run it even if a published version or a live job has "
+                   "the same spec and seed (otherwise that one is returned and nothing is recomputed)")
     p.add_argument("--wait", action="store_true", help="follow the job and print its summary")
     _common(p)
     _follow_options(p)

@@ -77,13 +77,21 @@ def _si(x: float | None) -> str:
 def format_progress(p) -> str:
     """One status line of a ``JobProgress``."""
     eta = "-" if p.eta_s is None else f"{p.eta_s:.0f}s"
-    return (f"{p.state:<9} shards {p.shards_done}/{p.shards_total} (running {p.shards_running}) "
+    stalled = getattr(p, "shards_stalled", 0)
+    running = f"running {p.shards_running}" + (f", stalled {stalled}" if stalled else "")
+    return (f"{p.state:<9} shards {p.shards_done}/{p.shards_total} ({running}) "
             f"photons {_si(p.photons_done)}  {_si(p.rate_photons_per_s)}/s  ETA {eta}  merge {p.merge_state}")
 
 
 def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,
-              show_progress: bool = True, lease_seconds: float | None = None, poll: float = 0.5) -> dict[str, Any]:
-    """Submit ``spec``, run it with ``workers`` local processes, return the run report."""
+              show_progress: bool = True, lease_seconds: float | None = None, poll: float = 0.5,
+              force: bool = False) -> dict[str, Any]:
+    """Submit ``spec``, run it with ``workers`` local processes, return the run report.
+
+    A spec already published (same spec hash, seed included) is not run again: the report is
+    that version's, with ``existing = "version"``; a live job of the same spec is followed
+    (``existing = "job"``). ``force`` runs it anyway.
+    """
     t0 = time.monotonic()
     # Workers first: their start-up (interpreter, torch, the compiled walk) overlaps importing
     # the store, opening it and submitting here; until the job exists they poll for work.
@@ -98,7 +106,8 @@ def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: i
 
         store = JobStore(db_url)
         storage = DatasetStorage(storage_uri)
-        job = store.submit(spec)
+        submitted = store.submit_unique(spec, force=force)
+        job = submitted.job
         while True:
             p = store.progress(job.id)
             if show_progress and (tty or time.monotonic() - last_line > 10):
@@ -124,7 +133,8 @@ def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: i
         wall = time.monotonic() - t0
         job = store.get_job(job.id)
         report: dict[str, Any] = {"job_id": job.id, "state": str(job.state), "workers": workers, "wall_s": wall,
-                                  "photons": p.photons_done, "photons_per_s": p.photons_done / wall if wall else None}
+                                  "photons": p.photons_done, "photons_per_s": p.photons_done / wall if wall else None,
+                                  "existing": submitted.existing}
         if job.state != JobState.SUCCEEDED:
             report["error"] = job.error
             return report
@@ -151,6 +161,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=default_workers(), help="worker processes (default: cores)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--data-dir", default=None, help="data directory (default: BSSRDF_DATA_DIR or ./.bssrdf)")
+    p.add_argument("--force", action="store_true", help="run it even if this spec and seed are already published "
+                   "(otherwise that version is printed and nothing is recomputed)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -175,7 +187,8 @@ def main(args: argparse.Namespace) -> int:
         return 2
     data_dir.mkdir(parents=True, exist_ok=True)
     try:
-        report = run_local(spec, db_url=db_url, storage_uri=storage_uri, data_dir=data_dir, workers=args.workers)
+        report = run_local(spec, db_url=db_url, storage_uri=storage_uri, data_dir=data_dir, workers=args.workers,
+                           force=args.force)
     except KeyboardInterrupt:
         print("cancelled", file=sys.stderr)
         return 130
@@ -185,7 +198,10 @@ def main(args: argparse.Namespace) -> int:
     elif "summary" in report:
         print(format_summary(report["summary"]))
         print(f"dataset {report['dataset']} version {report['version']}  ({report['uri']})")
-        print(f"{report['photons']} photons in {report['wall_s']:.1f} s with {report['workers']} workers")
+        if report["existing"] == "version":
+            print("existing version: same spec and seed, nothing recomputed (--force runs it again)")
+        else:
+            print(f"{report['photons']} photons in {report['wall_s']:.1f} s with {report['workers']} workers")
     else:
         print(f"job {report['job_id']} {report['state']}: {report.get('error')}", file=sys.stderr)
     if args.json:

@@ -29,7 +29,7 @@ from sqlalchemy.exc import DBAPIError
 from schema import SimulationSpec, parse_spec
 from service.datasets import DatasetStorage, run_merge_task
 from service.settings import settings_or_exit
-from service.store import JobStore, Lease, LeaseLost, TaskKind
+from service.store import JobNotFound, JobStore, Lease, LeaseLost, TaskKind
 
 __all__ = ["Worker", "JsonFormatter", "add_parser", "main", "configure_logging"]
 
@@ -139,7 +139,7 @@ class Worker:
                 self._process_shard(lease, beat, photons, fields)
             else:
                 self._process_merge(lease, beat, fields)
-        except LeaseLost as exc:
+        except (LeaseLost, JobNotFound) as exc:  # JobNotFound: the job was deleted meanwhile
             log.warning("result refused: lease lost", extra={**fields, "error": str(exc)})
         except _Abandon as exc:
             if beat.lost.is_set():
@@ -152,7 +152,7 @@ class Worker:
             try:
                 retried = self.store.fail_task(lease, error)
                 log.error("task failed", extra={**fields, "error": error, "will_retry": retried})
-            except LeaseLost:
+            except (LeaseLost, JobNotFound):
                 log.warning("task failed after its lease was lost", extra={**fields, "error": error})
         finally:
             beat.stop()

@@ -15,6 +15,7 @@ only on a loopback address.
 
 from __future__ import annotations
 
+import hashlib
 import re
 import secrets
 import threading
@@ -32,7 +33,7 @@ from service.store import JobNotFound, JobRecord, JobStore
 
 __all__ = [
     "SettingsDep", "StoreDep", "StorageDep", "AuthDep", "ReadAuthDep", "JobDep", "JobIdPath", "JOB_ID_PATTERN",
-    "get_settings", "get_store", "get_storage", "require_token", "require_read_token", "job_or_404",
+    "get_settings", "get_store", "token_fingerprint", "get_storage", "require_token", "require_read_token", "job_or_404",
     "Resources",
 ]
 
@@ -131,6 +132,13 @@ def require_token(settings: SettingsDep, credentials: Credentials) -> str | None
 def require_read_token(settings: SettingsDep, credentials: Credentials) -> str | None:
     """A valid bearer token unless reads are open (``settings.read_open``)."""
     return None if settings.read_open else _check(settings, credentials)
+
+
+def token_fingerprint(token: str | None) -> str:
+    """Who a token is, in a form safe to store and show: ``token sha256:1a2b3c4d5e6f``."""
+    if token is None:
+        return "anonymous (authentication off)"
+    return "token sha256:" + hashlib.sha256(token.encode()).hexdigest()[:12]
 
 
 AuthDep = Annotated[str | None, Depends(require_token)]

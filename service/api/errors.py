@@ -11,7 +11,8 @@ Exceptions mapped here (store errors not caught by a route):
 
     RequestValidationError        -> 422 (problems; a body that is not JSON is field ``body``)
     JobNotFound, VersionNotFound  -> 404
-    JobNotActive                  -> 409
+    VersionDeleted                -> 410 (the tombstone: who deleted it, the spec hash)
+    JobNotActive, JobPublished    -> 409
     IdempotencyConflict           -> 409
     ChecksumMismatch              -> 500 (the stored copy is corrupt; never served)
     sqlalchemy OperationalError,
@@ -32,7 +33,9 @@ from fastapi.responses import JSONResponse
 from sqlalchemy.exc import InterfaceError, OperationalError
 
 from service.api.models import ErrorMessage, ValidationErrorBody
-from service.store import ChecksumMismatch, IdempotencyConflict, JobNotActive, JobNotFound, VersionNotFound
+from service.store import (
+    ChecksumMismatch, IdempotencyConflict, JobNotActive, JobNotFound, JobPublished, VersionDeleted, VersionNotFound,
+)
 
 __all__ = ["problems_from_errors", "problem", "shorten", "install_error_handlers", "ERROR_RESPONSES", "error_responses"]
 
@@ -156,7 +159,13 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(VersionNotFound)
     async def _version_not_found(_request: Request, exc: VersionNotFound) -> JSONResponse:
+        if isinstance(exc, VersionDeleted):
+            return _detail(410, str(exc))
         return _detail(404, f"{exc}; list datasets with GET /v1/datasets")
+
+    @app.exception_handler(JobPublished)
+    async def _published(_request: Request, exc: JobPublished) -> JSONResponse:
+        return _detail(409, str(exc))
 
     @app.exception_handler(JobNotActive)
     async def _not_active(_request: Request, exc: JobNotActive) -> JSONResponse:
@@ -188,6 +197,7 @@ ERROR_RESPONSES: dict[int, dict[str, Any]] = {
     401: {"model": ErrorMessage, "description": "Missing or wrong bearer token."},
     404: {"model": ErrorMessage, "description": "No such job, dataset, version or file."},
     409: {"model": ErrorMessage, "description": "Conflicts with the stored state."},
+    410: {"model": ErrorMessage, "description": "The version was deleted (who and when, its spec hash)."},
     422: {"model": ValidationErrorBody,
           "description": "Invalid input: every bad field with the allowed range and the value received."},
     500: {"model": ErrorMessage, "description": "A stored file failed checksum verification."},

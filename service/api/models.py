@@ -9,7 +9,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from schema import SimulationSpec
 from service.store import DatasetRecord, DatasetVersionRecord, JobProgress, JobRecord, JobState
@@ -45,6 +47,9 @@ class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     spec: SimulationSpec = Field(description="The simulation spec (the schema package's SimulationSpec).")
+    force: StrictBool = Field(
+        False, description="Run it even if a published version or a live job has the same spec hash (seed "
+        "included); without it such a submission returns that job (200, `existing` says which).")
     idempotency_key: str | None = Field(
         None, min_length=1, max_length=IDEMPOTENCY_KEY_MAX, pattern=IDEMPOTENCY_KEY_PATTERN,
         description="1..200 printable ASCII characters, no spaces. Submitting again with the same key and spec returns the same job (200); "
@@ -57,14 +62,19 @@ class JobProgressPublic(BaseModel):
 
     shards_total: int
     shards_queued: int = Field(description="Queued, or leased with an expired lease (will be re-claimed).")
-    shards_running: int = Field(description="Leased with a live lease.")
+    shards_running: int = Field(description="Leased with a live lease, heartbeat within half the lease.")
+    shards_stalled: int = Field(description="Leased with a live lease but no heartbeat for half of it: the "
+                                "worker died or hangs; the shard is claimed again when the lease expires.")
     shards_done: int
-    shards_failed: int = Field(description="Failed or cancelled.")
+    shards_failed: int = Field(description="Attempts exhausted.")
+    shards_cancelled: int = Field(description="Not run: the job was cancelled or failed first.")
     merge_state: str = Field(description="State of the merge task (waiting, queued, leased, done, ...).")
     photons_done: int = Field(description="Photons of done shards plus those reported by running shards.")
+    photons_total: int | None = Field(description="Photons of the whole job (photons x angles x channels x media).")
     elapsed_s: float = Field(description="Seconds since the first claim (0 before).")
     rate_photons_per_s: float | None
-    eta_s: float | None = Field(description="None until a shard finished; 0 once the job ended.")
+    eta_s: float | None = Field(description="Seconds left at the current rate: None before the first photons are "
+                                "reported and once the job failed or was cancelled; 0 once it succeeded.")
 
     @classmethod
     def from_record(cls, p: JobProgress) -> "JobProgressPublic":
@@ -91,11 +101,16 @@ class JobPublic(BaseModel):
         None, description="Shards, photons, rate and ETA (in GET /v1/jobs/{id} and submit/cancel answers; "
         "null in lists)."
     )
+    existing: Literal["idempotency_key", "job", "version"] | None = Field(
+        None, description="On a submission answered 200: why this job was returned instead of a new one: "
+        "its idempotency key, a live job with the same spec hash, or a published version of it (nothing "
+        "is recomputed; `force` runs it again).")
 
     @classmethod
-    def from_record(cls, job: JobRecord, progress: JobProgress | None = None) -> "JobPublic":
-        fields = {k: getattr(job, k) for k in cls.model_fields if k not in ("spec", "progress")}
-        return cls(**fields, spec=job.spec_dict,
+    def from_record(cls, job: JobRecord, progress: JobProgress | None = None,
+                    existing: str | None = None) -> "JobPublic":
+        fields = {k: getattr(job, k) for k in cls.model_fields if k not in ("spec", "progress", "existing")}
+        return cls(**fields, spec=job.spec_dict, existing=existing,
                    progress=None if progress is None else JobProgressPublic.from_record(progress))
 
 
@@ -134,7 +149,10 @@ class DatasetVersionPublic(BaseModel):
     spec_hash: str | None
     photons: int | None
     shards: int | None
-    files: dict[str, FileInfo] = Field(description="Downloadable files (metadata.json included) and their sha256.")
+    files: dict[str, FileInfo] = Field(description="Downloadable files (metadata.json included) and their sha256; "
+                                       "empty once deleted.")
+    deleted_at: float | None = Field(None, description="Set on a deleted version (a tombstone: no files).")
+    deleted_by: str | None = Field(None, description="Who deleted it: the fingerprint of their token.")
 
     @classmethod
     def from_record(cls, v: DatasetVersionRecord) -> "DatasetVersionPublic":
@@ -144,7 +162,8 @@ class DatasetVersionPublic(BaseModel):
             files["metadata.json"] = FileInfo(sha256=meta["metadata_sha256"])
         return cls(name=v.name, version=v.version, created_at=v.created_at, job_id=v.job_id,
                    spec_hash=meta.get("spec_hash"), photons=meta.get("photons"), shards=meta.get("shards"),
-                   files=files)
+                   files={} if v.deleted_at is not None else files, deleted_at=v.deleted_at,
+                   deleted_by=v.deleted_by)
 
 
 class DatasetVersionDetail(DatasetVersionPublic):

@@ -5,6 +5,7 @@ Layout under the storage root::
     NAME/v1/radial.parquet, bins.parquet, summary.parquet, summary.json, metadata.json
     NAME/v2/...
     NAME/.staging-<uuid>/      files being written (never listed by the catalog)
+    .jobs/<job id>/            files a job keeps while it runs (removed when the job is deleted)
 
 A version exists when its catalog row exists (``dataset_versions``, written in the same DB
 transaction that ends the job). The staged directory is moved to ``NAME/vN`` inside that
@@ -73,6 +74,25 @@ class DatasetStorage:
         path = f"{self.root}/{_check_name(name)}/.staging-{uuid.uuid4().hex}"
         self.fs.create_dir(path, recursive=True)
         return StagedVersion(self, name, path)
+
+    def job_path(self, job_id: str) -> str:
+        """Directory of the files a job keeps while it runs (shard results)."""
+        return f"{self.root}/.jobs/{job_id}"
+
+    def discard_job(self, job_id: str) -> bool:
+        """Remove a job's directory (a deleted job); False if it had none."""
+        return self._remove(self.job_path(job_id))
+
+    def remove_version(self, record: DatasetVersionRecord) -> bool:
+        """Remove a deleted version's files (its catalog row is already a tombstone); False if
+        they were already gone."""
+        return self._remove(record.uri)
+
+    def _remove(self, path: str) -> bool:
+        if self.fs.get_file_info(path).type == pafs.FileType.NotFound:
+            return False
+        self.fs.delete_dir(path)
+        return True
 
     def ping(self) -> None:
         """Raise if the storage root is unreachable (for ``/readyz``)."""

@@ -12,11 +12,15 @@ from service.store.errors import (
     IdempotencyConflict,
     JobNotActive,
     JobNotFound,
+    JobPublished,
     LeaseLost,
     StoreError,
+    VersionDeleted,
     VersionNotFound,
 )
-from service.store.records import DatasetRecord, DatasetVersionRecord, ExportRecord, JobProgress, JobRecord, Lease
+from service.store.records import (
+    DatasetRecord, DatasetVersionRecord, ExportRecord, JobProgress, JobRecord, Lease, Submission,
+)
 from service.store.retry import RetryDecision, RetryPolicy, decide_retry
 from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
 from service.store.store import JobStore
@@ -25,6 +29,7 @@ __all__ = [
     "JobStore",
     "JobRecord",
     "JobProgress",
+    "Submission",
     "Lease",
     "DatasetRecord",
     "DatasetVersionRecord",
@@ -41,8 +46,10 @@ __all__ = [
     "JobNotFound",
     "JobNotActive",
     "IdempotencyConflict",
+    "JobPublished",
     "LeaseLost",
     "DatasetError",
     "VersionNotFound",
+    "VersionDeleted",
     "ChecksumMismatch",
 ]

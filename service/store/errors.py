@@ -4,10 +4,12 @@
     ├── JobNotFound            no job with that id
     ├── JobNotActive           the job already ended (succeeded, failed, cancelled)
     ├── IdempotencyConflict    an idempotency key reused with a different spec
+    ├── JobPublished           the job's dataset version is published: delete the version first
     ├── LeaseLost              the fencing token no longer matches: another worker owns the task,
     │                          or its job was cancelled; the caller must discard its result
     └── DatasetError
         ├── VersionNotFound    no such dataset name / version in the catalog
+        │   └── VersionDeleted the version was deleted (its tombstone: who, when, spec hash)
         └── ChecksumMismatch   a stored file does not match the sha256 recorded at publish time
 """
 
@@ -18,9 +20,11 @@ __all__ = [
     "JobNotFound",
     "JobNotActive",
     "IdempotencyConflict",
+    "JobPublished",
     "LeaseLost",
     "DatasetError",
     "VersionNotFound",
+    "VersionDeleted",
     "ChecksumMismatch",
 ]
 
@@ -48,6 +52,11 @@ class IdempotencyConflict(StoreError):
     """The idempotency key already names a job with a different spec; use a new key."""
 
 
+class JobPublished(StoreError):
+    """The job published a dataset version that still exists: it is that version's provenance.
+    Delete the version first (its tombstone then no longer needs the job)."""
+
+
 class LeaseLost(StoreError):
     """The lease of a task is no longer held by this token: discard the work, do not retry it."""
 
@@ -66,6 +75,15 @@ class VersionNotFound(DatasetError, KeyError):
 
     def __str__(self) -> str:
         return str(self.args[0])
+
+
+class VersionDeleted(VersionNotFound):
+    """The version was deleted; ``record`` is its tombstone (deleted_at, deleted_by, spec hash)."""
+
+    def __init__(self, record) -> None:
+        super().__init__(f"dataset {record.name!r} version {record.version} was deleted by {record.deleted_by} "
+                         f"(spec hash {record.spec_hash}); its files are gone: submit the spec again to remake it")
+        self.record = record
 
 
 class ChecksumMismatch(DatasetError):

@@ -8,11 +8,13 @@ from typing import Protocol
 import sqlalchemy as sa
 from sqlalchemy.exc import IntegrityError
 
+from schema import SimulationSpec
+from schema.estimate import job_photons
 from service.store.base import StoreBase
 from service.store.errors import IdempotencyConflict, JobNotActive, JobNotFound
-from service.store.records import JobProgress, JobRecord
-from service.store.states import TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
-from service.store.tables import jobs, tasks
+from service.store.records import JobProgress, JobRecord, Submission
+from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
+from service.store.tables import dataset_versions, jobs, tasks
 
 __all__ = ["JobsMixin", "SpecLike"]
 
@@ -32,45 +34,88 @@ class JobsMixin(StoreBase):
     """Job-level operations."""
 
     def submit(self, spec: SpecLike, *, idempotency_key: str | None = None) -> JobRecord:
-        """Store a job: ``spec.shards`` queued shard tasks plus one waiting merge task.
+        """Store a job: its shard tasks (queued) plus one merge task (waiting); the new job.
 
         With an ``idempotency_key``, submitting again returns the job first stored under that key
         (raises :class:`IdempotencyConflict` if its spec differs). Without one, every submission
-        is a new job and, once merged, a new dataset version.
+        is a new job and, once merged, a new dataset version (:meth:`submit_unique` instead
+        returns the live job or published version of the same spec).
+        """
+        return self.submit_unique(spec, idempotency_key=idempotency_key, force=True).job
+
+    def submit_unique(self, spec: SpecLike, *, idempotency_key: str | None = None,
+                      force: bool = False) -> Submission:
+        """Like :meth:`submit`, but a spec whose hash (seed included) matches a published
+        version or a live job returns that job instead of a new one (``Submission.existing``
+        says which), unless ``force``. The check and the insert are one transaction, serialised
+        per spec hash (PostgreSQL advisory lock; SQLite's single writer), so two identical
+        submissions at once make one job.
         """
         if spec.shards < 1:
             raise ValueError(f"spec.shards must be >= 1; received {spec.shards}")
         if idempotency_key is not None:
             existing = self._job_by_key(idempotency_key)
             if existing is not None:
-                return self._check_same_spec(existing, spec)
+                return Submission(self._check_same_spec(existing, spec), "idempotency_key")
         job_id = str(uuid.uuid4())
         spec_json, spec_hash = spec.canonical_json(), spec.spec_hash()
         now = self._now()
         try:
             with self._tx() as conn:
-                conn.execute(
-                    sa.insert(jobs).values(
-                        id=job_id, name=spec.name, spec_json=spec_json, spec_hash=spec_hash,
-                        shards=spec.shards, state=JobState.QUEUED, idempotency_key=idempotency_key,
-                        created_at=now, updated_at=now,
-                    )
-                )
-                rows = [
-                    dict(job_id=job_id, kind=TaskKind.SHARD, shard_index=i, state=TaskState.QUEUED,
-                         max_attempts=self.max_attempts)
-                    for i in range(spec.shards)
-                ]
-                rows.append(dict(job_id=job_id, kind=TaskKind.MERGE, shard_index=None,
-                                 state=TaskState.WAITING, max_attempts=self.max_attempts))
-                conn.execute(sa.insert(tasks), rows)  # executemany keeps shard order in ids
+                if not force:
+                    duplicate = self._duplicate(conn, spec_hash)
+                    if duplicate is not None:
+                        found_id, why = duplicate
+                        job_id = None
+                if job_id is not None:
+                    self._insert_job(conn, job_id, spec, spec_json, spec_hash, idempotency_key, now)
         except IntegrityError:
             # A concurrent submit stored the same idempotency key first.
             existing = self._job_by_key(idempotency_key) if idempotency_key else None
             if existing is None:
                 raise
-            return self._check_same_spec(existing, spec)
-        return self.get_job(job_id)
+            return Submission(self._check_same_spec(existing, spec), "idempotency_key")
+        if job_id is None:
+            return Submission(self.get_job(found_id), why)
+        return Submission(self.get_job(job_id))
+
+    def _duplicate(self, conn, spec_hash: str) -> tuple[str, str] | None:
+        """``(job id, "version" | "job")`` of a published version or live job with this spec
+        hash (a published one first), holding the per-hash lock until the transaction ends."""
+        if self.dialect_name == "postgresql":  # SQLite: BEGIN IMMEDIATE already serialises writers
+            conn.execute(sa.select(sa.func.pg_advisory_xact_lock(int(spec_hash[:15], 16))))
+        published = conn.execute(
+            sa.select(jobs.c.id).join(dataset_versions, dataset_versions.c.job_id == jobs.c.id)
+            .where(jobs.c.spec_hash == spec_hash, jobs.c.state == JobState.SUCCEEDED,
+                   dataset_versions.c.deleted_at.is_(None))
+            .order_by(dataset_versions.c.version.desc()).limit(1)
+        ).scalar_one_or_none()
+        if published is not None:
+            return published, "version"
+        live = conn.execute(
+            sa.select(jobs.c.id).where(jobs.c.spec_hash == spec_hash, jobs.c.state.in_(list(ACTIVE_JOB_STATES)))
+            .order_by(jobs.c.created_at).limit(1)
+        ).scalar_one_or_none()
+        return None if live is None else (live, "job")
+
+    def _insert_job(self, conn, job_id: str, spec: SpecLike, spec_json: str, spec_hash: str,
+                    idempotency_key: str | None, now) -> None:
+        conn.execute(
+            sa.insert(jobs).values(
+                id=job_id, name=spec.name, spec_json=spec_json, spec_hash=spec_hash,
+                shards=spec.shards, state=JobState.QUEUED, idempotency_key=idempotency_key,
+                created_at=now, updated_at=now,
+                photons_total=job_photons(spec) if isinstance(spec, SimulationSpec) else None,
+            )
+        )
+        rows = [
+            dict(job_id=job_id, kind=TaskKind.SHARD, shard_index=i, state=TaskState.QUEUED,
+                 max_attempts=self.max_attempts)
+            for i in range(spec.shards)
+        ]
+        rows.append(dict(job_id=job_id, kind=TaskKind.MERGE, shard_index=None,
+                         state=TaskState.WAITING, max_attempts=self.max_attempts))
+        conn.execute(sa.insert(tasks), rows)  # executemany keeps shard order in ids
 
     def job_by_idempotency_key(self, key: str) -> JobRecord | None:
         """The job stored under this idempotency key, or None (lets the API answer 200 vs 201)."""
@@ -123,42 +168,57 @@ class JobsMixin(StoreBase):
         return self.get_job(job_id)
 
     def progress(self, job_id: str) -> JobProgress:
-        """Shard counts, photons done, rate (photons/s since the first claim) and ETA."""
+        """Shard counts, photons done, rate (photons/s since the first claim) and ETA.
+
+        Running shards hold a live lease whose worker heartbeat within half the lease (two
+        heartbeat periods); a live lease without that is *stalled* (worker killed or hung: the
+        shard is claimed again when the lease expires). ETA = (photons of the job - photons
+        done) / rate, from the photons heartbeats report, so it exists before any shard ends.
+        """
         now = self._now()
-        live = sa.and_(tasks.c.state == TaskState.LEASED, tasks.c.lease_expires_at >= now)
+        t = tasks.c
+        live = sa.and_(t.state == TaskState.LEASED, t.lease_expires_at >= now)
+        fresh = 2 * now <= t.lease_expires_at + t.heartbeat_at  # now - heartbeat <= lease / 2
         with self.engine.connect() as conn:
             job = conn.execute(sa.select(jobs, now.label("now")).where(jobs.c.id == job_id)).first()
             if job is None:
                 raise JobNotFound(job_id)
             counts = conn.execute(
                 sa.select(
-                    sa.func.count().filter(tasks.c.state == TaskState.DONE),
-                    sa.func.count().filter(live),
-                    sa.func.count().filter(tasks.c.state.in_([TaskState.FAILED, TaskState.CANCELLED])),
-                    sa.func.coalesce(sa.func.sum(tasks.c.photons), 0),
-                    sa.func.coalesce(sa.func.sum(tasks.c.photons).filter(tasks.c.state == TaskState.DONE), 0),
-                ).where(tasks.c.job_id == job_id, tasks.c.kind == TaskKind.SHARD)
+                    sa.func.count().filter(t.state == TaskState.DONE),
+                    sa.func.count().filter(live, fresh),
+                    sa.func.count().filter(live, sa.not_(fresh)),
+                    sa.func.count().filter(t.state == TaskState.FAILED),
+                    sa.func.count().filter(t.state == TaskState.CANCELLED),
+                    sa.func.coalesce(sa.func.sum(t.photons), 0),
+                    sa.func.coalesce(sa.func.sum(t.photons).filter(t.state == TaskState.DONE), 0),
+                ).where(t.job_id == job_id, t.kind == TaskKind.SHARD)
             ).one()
             merge_state = conn.execute(
-                sa.select(tasks.c.state).where(tasks.c.job_id == job_id, tasks.c.kind == TaskKind.MERGE)
+                sa.select(t.state).where(t.job_id == job_id, t.kind == TaskKind.MERGE)
             ).scalar_one()
         m = job._mapping
-        done, running, failed, photons, photons_done_shards = (int(x) for x in counts)
+        done, running, stalled, failed, cancelled, photons, photons_done_shards = (int(x) for x in counts)
         total = int(m["shards"])
         end = m["finished_at"] if m["finished_at"] is not None else m["now"]
         elapsed = max(0.0, end - m["started_at"]) if m["started_at"] is not None else 0.0
         rate = photons / elapsed if elapsed > 0 and photons > 0 else None
         state = JobState(m["state"])
-        eta = None
-        if state in TERMINAL_JOB_STATES:
-            eta = 0.0
-        elif done and rate:
+        expected = m["photons_total"]
+        if expected is None and done:
             expected = photons_done_shards / done * total  # photons of the whole job, extrapolated
+        eta = None
+        if state == JobState.SUCCEEDED:
+            eta = 0.0
+        elif state in TERMINAL_JOB_STATES:
+            eta = None  # failed or cancelled: it will not finish
+        elif rate and expected is not None:
             eta = max(0.0, expected - photons) / rate
         return JobProgress(
             job_id=job_id, state=state, shards_total=total,
-            shards_queued=total - done - running - failed, shards_running=running, shards_done=done,
-            shards_failed=failed, merge_state=merge_state, photons_done=photons, elapsed_s=elapsed,
+            shards_queued=total - done - running - stalled - failed - cancelled, shards_running=running,
+            shards_stalled=stalled, shards_done=done, shards_failed=failed, shards_cancelled=cancelled,
+            merge_state=merge_state, photons_done=photons, photons_total=m["photons_total"], elapsed_s=elapsed,
             rate_photons_per_s=rate, eta_s=eta, error=m["error"],
             dataset_name=m["dataset_name"], dataset_version=m["dataset_version"],
         )

@@ -11,7 +11,7 @@ from typing import Any
 
 from service.store.states import JobState, TaskKind
 
-__all__ = ["JobRecord", "Lease", "JobProgress", "DatasetVersionRecord", "DatasetRecord", "ExportRecord"]
+__all__ = ["JobRecord", "Lease", "JobProgress", "DatasetVersionRecord", "DatasetRecord", "ExportRecord", "Submission"]
 
 
 @dataclass(frozen=True)
@@ -32,6 +32,7 @@ class JobRecord:
     error: str | None
     dataset_name: str | None
     dataset_version: int | None
+    photons_total: int | None = None  # photons the whole job walks (None: not known at submission)
 
     @property
     def spec_dict(self) -> dict[str, Any]:
@@ -42,6 +43,19 @@ class JobRecord:
     def from_row(cls, row) -> "JobRecord":
         m = row._mapping
         return cls(**{k: m[k] for k in cls.__dataclass_fields__ if k != "state"}, state=JobState(m["state"]))
+
+
+@dataclass(frozen=True)
+class Submission:
+    """What a submission got: a new job (``existing`` None), or the job it duplicates.
+
+    ``existing``: ``"idempotency_key"`` (the key names this job), ``"job"`` (a live job with the
+    same spec hash, seed included), ``"version"`` (a published version of the same spec hash;
+    ``job`` is the job that published it).
+    """
+
+    job: JobRecord
+    existing: str | None = None
 
 
 @dataclass(frozen=True)
@@ -68,14 +82,17 @@ class JobProgress:
     state: JobState
     shards_total: int
     shards_queued: int  # queued, or leased with an expired lease (will be re-claimed)
-    shards_running: int  # leased, lease live
+    shards_running: int  # leased, lease live, heartbeat within half the lease
+    shards_stalled: int  # leased, lease live, no heartbeat for half the lease (worker dead or hung)
     shards_done: int
-    shards_failed: int  # failed or cancelled
+    shards_failed: int  # attempts exhausted
+    shards_cancelled: int  # the job was cancelled (or failed) before they ran
     merge_state: str  # TaskState of the merge task
     photons_done: int  # done shards plus photons reported by heartbeats of running shards
+    photons_total: int | None  # photons of the whole job (None: not recorded at submission)
     elapsed_s: float  # since the first claim (0 before)
     rate_photons_per_s: float | None
-    eta_s: float | None  # None until a shard finished; 0 when the job ended
+    eta_s: float | None  # None before any photon is reported or when the job failed/was cancelled; 0 once succeeded
     error: str | None
     dataset_name: str | None = None
     dataset_version: int | None = None
@@ -91,11 +108,18 @@ class DatasetVersionRecord:
     created_at: float
     job_id: str | None
     meta: dict[str, Any] = field(repr=False)  # metadata.json content (+ "metadata_sha256")
+    deleted_at: float | None = None  # set on a tombstone: files removed, row kept
+    deleted_by: str | None = None
+
+    @property
+    def spec_hash(self) -> str | None:
+        return self.meta.get("spec_hash")
 
     @classmethod
     def from_row(cls, row) -> "DatasetVersionRecord":
         m = row._mapping
-        return cls(m["name"], m["version"], m["uri"], m["created_at"], m["job_id"], m["meta"])
+        return cls(m["name"], m["version"], m["uri"], m["created_at"], m["job_id"], m["meta"],
+                   m.get("deleted_at"), m.get("deleted_by"))
 
 
 @dataclass(frozen=True)

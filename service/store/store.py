@@ -11,6 +11,7 @@ from alembic.config import Config
 from service.store.catalog import CatalogMixin
 from service.store.exports import ExportsMixin
 from service.store.jobs import JobsMixin
+from service.store.lifecycle import LifecycleMixin
 from service.store.queue import QueueMixin
 from service.store.retry import RetryPolicy
 from service.store.states import JobState, TaskKind, TaskState
@@ -22,7 +23,7 @@ MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 _PG_MIGRATION_LOCK = 0x6273_7372_6466  # arbitrary advisory-lock key ("bssrdf")
 
 
-class JobStore(JobsMixin, QueueMixin, CatalogMixin, ExportsMixin):
+class JobStore(JobsMixin, QueueMixin, CatalogMixin, ExportsMixin, LifecycleMixin):
     """Jobs, the shard/merge lease queue, the dataset catalog and its exports in one SQL database.
 
     ``JobStore(url)`` works for ``sqlite:///FILE`` (one host) and ``postgresql+psycopg://...``

@@ -1,4 +1,4 @@
-"""SQLAlchemy Core tables of the job store (the schema created by migration 0001).
+"""SQLAlchemy Core tables of the job store (the schema created by migrations 0001, 0002, 0003_lifecycle).
 
 Times are seconds since the Unix epoch (float64) read from the *database* clock
 (:func:`service.store.engine.db_now`), so leases are judged by one clock for every worker host.
@@ -29,6 +29,8 @@ jobs = sa.Table(
     sa.Column("error", sa.Text),
     sa.Column("dataset_name", sa.String(200)),
     sa.Column("dataset_version", sa.Integer),
+    sa.Column("photons_total", sa.BigInteger),  # photons x angles x channels x media (None: unknown)
+    sa.Index("ix_jobs_spec_hash", "spec_hash"),
 )
 
 tasks = sa.Table(
@@ -56,6 +58,9 @@ tasks = sa.Table(
     sa.Column("error", sa.Text),
     sa.Index("ix_tasks_state_id", "state", "id"),
     sa.Index("ix_tasks_job_id", "job_id"),
+    # The claim's candidates: queued and leased tasks only (partial index, migration 0002).
+    sa.Index("ix_tasks_live", "id", sqlite_where=sa.text("state IN ('queued', 'leased')"),
+             postgresql_where=sa.text("state IN ('queued', 'leased')")),
 )
 
 shard_results = sa.Table(
@@ -77,6 +82,8 @@ dataset_versions = sa.Table(
     sa.Column("created_at", sa.Float, nullable=False),
     sa.Column("job_id", sa.String(36), sa.ForeignKey("jobs.id"), nullable=True),
     sa.Column("meta", sa.JSON, nullable=False),  # metadata.json content + its own sha256
+    sa.Column("deleted_at", sa.Float),  # set: a tombstone (files removed, row and spec hash kept)
+    sa.Column("deleted_by", sa.String(200)),  # who deleted it (token fingerprint)
     sa.UniqueConstraint("name", "version", name="uq_dataset_versions_name_version"),
 )
 

@@ -44,7 +44,7 @@ def test_mutations_need_a_valid_token(make_client, sqlite_store, storage, header
 def test_any_configured_token_is_accepted(make_client, sqlite_store, storage):
     client = make_client(sqlite_store, storage, api_tokens=["first-token", TOKEN])
     assert client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers={"Authorization": "Bearer first-token"}).status_code == 201
-    assert client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers=AUTH).status_code == 201
+    assert client.post("/v1/jobs", json={"spec": TINY_SPEC, "force": True}, headers=AUTH).status_code == 201
 
 
 def test_reads_open_by_default(make_client, sqlite_store, storage):

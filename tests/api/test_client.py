@@ -54,8 +54,11 @@ def test_submit_prints_the_job_id_and_stores_it(cli, sqlite_store, storage, caps
     status, out, err = run("submit", spec_file(TINY_SPEC), "--token", TOKEN)
     assert status == 0 and sqlite_store.get_job(out.strip()).name == "tiny"
     assert "queued" in err
-    status, out, _ = run("submit", spec_file(TINY_SPEC), "--token", TOKEN, "--json", "--idempotency-key", "k")
-    assert json.loads(out)["idempotency_key"] == "k"
+    status, out, err = run("submit", spec_file(TINY_SPEC), "--token", TOKEN)  # same spec: that job, not a new one
+    assert status == 0 and len(sqlite_store.list_jobs()) == 1 and "existing job" in err
+    status, out, _ = run("submit", spec_file(TINY_SPEC), "--token", TOKEN, "--json", "--idempotency-key", "k",
+                         "--force")
+    assert json.loads(out)["idempotency_key"] == "k" and len(sqlite_store.list_jobs()) == 2
 
 
 def test_submit_errors_are_readable_with_field_range_and_value(cli, sqlite_store, storage, capsys, spec_file):

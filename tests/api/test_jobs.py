@@ -106,8 +106,11 @@ def test_idempotency_key_same_spec_200_other_spec_409(client, store):
     assert other.status_code == 409
     assert "k-1" in other.json()["detail"] and "use a new key" in other.json()["detail"]
     assert job_count(store) == 1
-    unkeyed = client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers=AUTH)
-    assert unkeyed.status_code == 201 and unkeyed.json()["id"] != first.json()["id"]
+    unkeyed = client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers=AUTH)  # same spec hash: that live job
+    assert unkeyed.status_code == 200 and unkeyed.json()["id"] == first.json()["id"]
+    assert unkeyed.json()["existing"] == "job" and again.json()["existing"] == "idempotency_key"
+    forced = client.post("/v1/jobs", json={"spec": TINY_SPEC, "force": True}, headers=AUTH)
+    assert forced.status_code == 201 and forced.json()["id"] != first.json()["id"] and forced.json()["existing"] is None
 
 
 def test_idempotency_header_and_body_must_agree(client, store):
@@ -161,7 +164,9 @@ def test_cancel_404_200_idempotent_and_409_when_finished(client, store):
     job_id = client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers=AUTH).json()["id"]
     r = client.post(f"/v1/jobs/{job_id}/cancel", headers=AUTH)
     assert r.status_code == 200 and r.json()["state"] == "cancelled"
-    assert r.json()["progress"]["shards_failed"] == 2  # its tasks are cancelled
+    progress = r.json()["progress"]
+    assert (progress["shards_cancelled"], progress["shards_failed"]) == (2, 0)  # its tasks are cancelled, not failed
+    assert progress["eta_s"] is None  # it will not finish
     assert client.post(f"/v1/jobs/{job_id}/cancel", headers=AUTH).json()["state"] == "cancelled"
     assert store.claim("w", 60) is None  # no claims after cancel
 

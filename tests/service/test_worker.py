@@ -75,9 +75,15 @@ def test_bssrdf_run_publishes_versions_with_the_simulate_summary(tmp_path):
                                       timeout=150).stdout)
     assert first["state"] == "succeeded" and (first["dataset"], first["version"]) == ("runme", 1)
     assert first["name"] == "runme" and first["results"] and first["run"]["shards"] == 2  # simulate's JSON
-    human = subprocess.run(cmd[:-1], cwd=REPO, env=env, capture_output=True, text=True, check=True, timeout=150)
-    assert "dataset runme version 2" in human.stdout and "Rd = diffuse reflectance" in human.stdout
+    # the second run of the same spec and seed prints the published version and publishes none
+    again = subprocess.run(cmd[:-1], cwd=REPO, env=env, capture_output=True, text=True, check=True, timeout=150)
+    assert "dataset runme version 1" in again.stdout and "Rd = diffuse reflectance" in again.stdout
+    assert "existing version: same spec and seed, nothing recomputed" in again.stdout
     store = JobStore(f"sqlite:///{tmp_path / 'd' / 'jobs.sqlite'}")
+    assert [v.version for v in store.list_versions("runme")] == [1] and len(store.list_jobs()) == 1
+    forced = subprocess.run(cmd[:-1] + ["--force"], cwd=REPO, env=env, capture_output=True, text=True, check=True,
+                            timeout=150)
+    assert "dataset runme version 2" in forced.stdout
     assert [v.version for v in store.list_versions("runme")] == [1, 2]
     # same spec and seed: the same tables in both versions
     a, b = (Path(v.uri) for v in store.list_versions("runme"))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Path, Request
+from fastapi import APIRouter, HTTPException, Path, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response, StreamingResponse
 from pydantic import AfterValidator
@@ -12,13 +12,13 @@ from pydantic_core import PydanticCustomError
 
 from schema.names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
 
-from service.api.deps import ReadAuthDep, StorageDep, StoreDep
+from service.api.deps import AuthDep, ReadAuthDep, StorageDep, StoreDep, token_fingerprint
 from service.api.downloads import DOWNLOAD_RESPONSES, file_response
 from service.api.errors import error_responses, shorten
 from service.api.models import DatasetPublic, DatasetVersionDetail, DatasetVersionPublic, dataset_from_record
 from service.datasets import expected_files
 from service.datasets.exports import ensure_export
-from service.store import DatasetVersionRecord, JobStore, VersionNotFound
+from service.store import DatasetVersionRecord, JobStore, VersionDeleted, VersionNotFound
 from workers.exports import FORMATS, ExportError, MissingDependency
 
 __all__ = ["router", "parse_version", "NamePath", "VersionPath", "VERSION_MAX"]
@@ -62,6 +62,8 @@ def _version(store: JobStore, name: str, version: str) -> DatasetVersionRecord:
     number = parse_version(version)
     try:
         return store.get_version(name, number)
+    except VersionDeleted:
+        raise  # 410 with the tombstone (service.api.errors)
     except VersionNotFound:
         which = "no versions" if number is None else f"no version {number}"
         raise HTTPException(404, f"dataset {name!r} has {which}; list its versions with "
@@ -76,9 +78,11 @@ def list_datasets(_token: ReadAuthDep, store: StoreDep) -> list[DatasetPublic]:
 
 @router.get("/{name}/versions", summary="List the versions of a dataset",
             response_model=list[DatasetVersionPublic], responses=error_responses(401, 404, 503))
-def list_versions(_token: ReadAuthDep, name: NamePath, store: StoreDep) -> list[DatasetVersionPublic]:
+def list_versions(_token: ReadAuthDep, name: NamePath, store: StoreDep,
+                  deleted: Annotated[bool, Query(description="Include the tombstones of deleted versions.")] = False,
+                  ) -> list[DatasetVersionPublic]:
     """Versions, oldest first, with their files and checksums."""
-    versions = store.list_versions(name)
+    versions = store.list_versions(name, deleted=deleted)
     if not versions:
         raise HTTPException(404, f"no dataset named {name!r}; list datasets with GET /v1/datasets")
     return [DatasetVersionPublic.from_record(v) for v in versions]

@@ -1,4 +1,4 @@
-"""``/v1/jobs``: submit, list, read and cancel jobs."""
+"""``/v1/jobs``: submit, list, read, cancel and delete jobs."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from fastapi import APIRouter, Header, Query, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service.api.deps import AuthDep, JobDep, ReadAuthDep, SettingsDep, StoreDep
+from service.api.deps import AuthDep, JobDep, ReadAuthDep, SettingsDep, StorageDep, StoreDep
 from service.api.errors import error_responses
 from service.api.limits import spec_limit_problems
 from service.api.models import IDEMPOTENCY_KEY_MAX, IDEMPOTENCY_KEY_PATTERN, JobCreate, JobList, JobPublic
@@ -37,8 +37,9 @@ def _idempotency_key(body: JobCreate, header: str | None) -> str | None:
     summary="Submit a job",
     response_model=JobPublic,
     status_code=status.HTTP_201_CREATED,
-    responses={200: {"model": JobPublic, "description": "The idempotency key names an existing job with "
-                     "this spec: that job."}, **error_responses(401, 409, 422, 503)},
+    responses={200: {"model": JobPublic, "description": "Not a new job: the idempotency key names it, or a "
+                     "live job or published version has this spec hash (`existing` says which); nothing is "
+                     "recomputed."}, **error_responses(401, 409, 422, 503)},
 )
 def submit_job(
     _token: AuthDep,
@@ -53,19 +54,22 @@ def submit_job(
     """Validate the spec, store the job (its shard tasks and merge task) and return it.
 
     An invalid spec is answered 422 with every bad field (``spec.medium.g`` ...), its allowed
-    range and the value received; nothing is stored. With an idempotency key, a retry with the
-    same spec returns the stored job with status 200; another spec under the same key is 409.
+    range and the value received, and so is a spec beyond a limit (photons per job, estimated
+    CPU seconds per shard); nothing is stored. With an idempotency key, a retry with the same
+    spec returns the stored job with status 200; another spec under the same key is 409. A spec
+    whose hash (seed included) matches a published version or a live job returns that job with
+    200 and ``existing`` set, unless ``force``.
     """
     key = _idempotency_key(body, idempotency_key)
     problems = spec_limit_problems(body.spec, settings)
     if problems:
         return JSONResponse({"detail": problems}, status_code=422)
-    existing = store.job_by_idempotency_key(key) if key is not None else None
-    job = store.submit(body.spec, idempotency_key=key)  # IdempotencyConflict -> 409
-    if existing is not None:
+    submitted = store.submit_unique(body.spec, idempotency_key=key, force=body.force)  # IdempotencyConflict -> 409
+    job = submitted.job
+    if submitted.existing is not None:
         response.status_code = status.HTTP_200_OK
     response.headers["Location"] = f"{router.prefix}/{job.id}"
-    return JobPublic.from_record(job, store.progress(job.id))
+    return JobPublic.from_record(job, store.progress(job.id), submitted.existing)
 
 
 @router.get("", summary="List jobs", response_model=JobList, responses=error_responses(401, 422, 503))
@@ -100,3 +104,14 @@ def cancel_job(_token: AuthDep, job: JobDep, store: StoreDep) -> JobPublic:
     """
     cancelled = store.cancel(job.id)  # JobNotActive -> 409
     return JobPublic.from_record(cancelled, store.progress(job.id))
+
+
+@router.delete("/{job_id}", summary="Delete a job", response_model=JobPublic,
+               responses=error_responses(401, 404, 409, 503))
+def delete_job(_token: AuthDep, job: JobDep, store: StoreDep, storage: StorageDep) -> JobPublic:
+    """Cancel the job if it is live, remove its tasks, stored shard results and job files; the
+    answer is the job as it was deleted (then GET is 404). A job whose dataset version exists is
+    that version's provenance: 409 until the version is deleted."""
+    deleted = store.delete_job(job.id)  # JobPublished -> 409
+    storage.discard_job(job.id)
+    return JobPublic.from_record(deleted)

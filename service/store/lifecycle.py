@@ -1,0 +1,79 @@
+"""Deleting jobs and dataset versions.
+
+    delete_job(job_id)              cancel it if it is live; remove its tasks and stored shard
+                                    results; refused (JobPublished) while a version it published
+                                    exists, which the job row documents
+    delete_version(name, v, by)     tombstone: the row stays with its metadata (spec hash) and
+                                    who deleted it when; the caller removes the files
+
+Version numbers are never reused: the next version is max + 1 over tombstones too.
+"""
+
+from __future__ import annotations
+
+import sqlalchemy as sa
+
+from service.store.base import StoreBase
+from service.store.errors import JobPublished, VersionNotFound
+from service.store.records import DatasetVersionRecord, JobRecord
+from service.store.states import ACTIVE_JOB_STATES, JobState
+from service.store.tables import dataset_versions, jobs
+
+__all__ = ["LifecycleMixin"]
+
+
+class LifecycleMixin(StoreBase):
+    """Deletion of jobs and of dataset versions."""
+
+    def delete_job(self, job_id: str) -> JobRecord:
+        """Delete a job (cancelling it first if it is live); returns the job as it was deleted.
+
+        Its shard tasks and stored shard results go with it (a worker still running one gets
+        LeaseLost at its next heartbeat or commit). Raises :class:`JobNotFound`, or
+        :class:`JobPublished` while a version it published exists (delete that first).
+        """
+        with self._tx() as conn:
+            state = self._lock_job(conn, job_id)
+            v = dataset_versions.c
+            live = conn.execute(
+                sa.select(v.name, v.version).where(v.job_id == job_id, v.deleted_at.is_(None))
+            ).first()
+            if live is not None:
+                raise JobPublished(
+                    f"job {job_id} published dataset {live.name!r} version {live.version}, which records it as its "
+                    f"provenance; delete the version first (DELETE /v1/datasets/{live.name}/versions/{live.version})")
+            if state in ACTIVE_JOB_STATES:
+                self._end_job(conn, job_id, JobState.CANCELLED, error="deleted")
+            job = JobRecord.from_row(conn.execute(sa.select(jobs).where(jobs.c.id == job_id)).one())
+            conn.execute(sa.update(dataset_versions).where(v.job_id == job_id).values(job_id=None))  # tombstones
+            conn.execute(sa.delete(jobs).where(jobs.c.id == job_id))  # tasks, shard_results: ON DELETE CASCADE
+        return job
+
+    def delete_version(self, name: str, version: int, deleted_by: str) -> DatasetVersionRecord:
+        """Make version ``version`` of ``name`` a tombstone (idempotent); returns it.
+
+        Raises :class:`VersionNotFound` if there never was such a version.
+        """
+        v = dataset_versions.c
+        where = sa.and_(v.name == name, v.version == int(version))
+        with self._tx() as conn:
+            row = conn.execute(sa.select(dataset_versions).where(where).with_for_update()).first()
+            if row is None:
+                raise VersionNotFound(f"dataset {name!r} has no version {version}; list them with GET "
+                                      f"/v1/datasets/{name}/versions")
+            if row.deleted_at is None:
+                conn.execute(sa.update(dataset_versions).where(where).values(deleted_at=self._now(),
+                                                                            deleted_by=deleted_by))
+            row = conn.execute(sa.select(dataset_versions).where(where)).one()
+        return DatasetVersionRecord.from_row(row)
+
+    def tombstone(self, name: str, version: int) -> DatasetVersionRecord:
+        """The tombstone of a deleted version (:class:`VersionNotFound` if it is not deleted)."""
+        v = dataset_versions.c
+        with self.engine.connect() as conn:
+            row = conn.execute(sa.select(dataset_versions).where(
+                v.name == name, v.version == int(version), v.deleted_at.is_not(None))).first()
+        if row is None:
+            raise VersionNotFound(f"dataset {name!r} version {version} is not deleted")
+        return DatasetVersionRecord.from_row(row)
+
