@@ -152,3 +152,25 @@ def download_export(_token: ReadAuthDep, request: Request, name: NamePath, versi
         raise _format_problem(format, f"{record.name} v{record.version} cannot be exported as {format}: {exc}") from None
     return file_response(request, storage, record, export.filename, export.sha256,
                          download_name=f"{record.name}-v{record.version}-{format}.zip")
+
+
+@router.delete("/{name}/versions/{version}", summary="Delete a version", response_model=DatasetVersionPublic,
+               responses=error_responses(401, 404, 422, 503))
+def delete_version(token: AuthDep, name: NamePath, version: VersionPath, store: StoreDep,
+                   storage: StorageDep) -> DatasetVersionPublic:
+    """Remove the version's files and keep a tombstone: its row with the spec hash, who deleted
+    it and when (GET then answers 410; its number is never reused). Deleting it again returns
+    the tombstone. ``latest`` is refused here: name the number you mean to delete."""
+    number = parse_version(version)
+    if number is None:
+        raise RequestValidationError([{
+            "type": "version", "loc": ("path", "version"), "input": version,
+            "msg": "DELETE needs the version number, not 'latest'; list them with GET "
+                   f"/v1/datasets/{name}/versions", "ctx": {"allowed": f"1..{VERSION_MAX}"}}])
+    try:
+        record = store.delete_version(name, number, token_fingerprint(token))
+    except VersionNotFound:
+        raise HTTPException(404, f"dataset {name!r} has no version {number}; list its versions with "
+                                 f"GET /v1/datasets/{name}/versions") from None
+    storage.remove_version(record)
+    return DatasetVersionPublic.from_record(record)
