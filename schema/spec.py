@@ -179,16 +179,20 @@ class SimulationSpec(BaseModel):
         medium, bins = info.data.get("medium"), info.data.get("bins")
         if target is None or target.radial is None or medium is None or bins is None:
             return target
-        t = target.radial
-        channels = medium.channels()
-        for ch, edges in zip(channels, _radial_edges_mm(bins, channels)):
-            if not np.any((edges[:-1] >= t.r_min_mm) & (edges[1:] <= t.r_max_mm)):
-                raise PydanticCustomError(
-                    "radial_target_empty",
-                    "radial target range [{lo}, {hi}] mm holds no whole radial bin of channel "
-                    "{ch} (edges {edges} mm); widen it",
-                    {"lo": t.r_min_mm, "hi": t.r_max_mm, "ch": ch.name,
-                     "edges": np.array2string(edges, precision=4, threshold=8)[:120]})
+        _check_radial_target(target, bins, medium.channels())
+        return target
+
+    @field_validator("target")
+    @classmethod
+    def _target_selects_radial_bins_of_every_medium(cls, target: TargetSpec | None, info: ValidationInfo) -> TargetSpec | None:
+        """A sweep's radial target must cover at least one radial bin of every medium (their
+        radial extents differ with the transport mean free path, 1 / (1 - albedo g) mm)."""
+        sweep, bins = info.data.get("sweep"), info.data.get("bins")
+        if target is None or target.radial is None or sweep is None or bins is None:
+            return target
+        pairs = sorted({(a, g) for a in sweep.albedos() for g in sweep.g})
+        channels = [ChannelOptics(name=f"albedo {a:g}, g {g:g}", sigma_a=1.0 - a, sigma_s=a, g=g) for a, g in pairs]
+        _check_radial_target(target, bins, channels)
         return target
 
     @field_validator("shards")
@@ -327,6 +331,19 @@ class SimulationSpec(BaseModel):
     def spec_hash(self) -> str:
         """sha256 hex digest of :meth:`canonical_json` (UTF-8)."""
         return hashlib.sha256(self.canonical_json().encode("utf-8")).hexdigest()
+
+
+def _check_radial_target(target: TargetSpec, bins: BinSpec, channels: list[ChannelOptics]) -> None:
+    """PydanticCustomError unless target.radial's range holds a whole radial bin of each channel."""
+    t = target.radial
+    for ch, edges in zip(channels, _radial_edges_mm(bins, channels)):
+        if not np.any((edges[:-1] >= t.r_min_mm) & (edges[1:] <= t.r_max_mm)):
+            raise PydanticCustomError(
+                "radial_target_empty",
+                "radial target range [{lo}, {hi}] mm holds no whole radial bin of channel "
+                "{ch} (edges {edges} mm); widen it",
+                {"lo": t.r_min_mm, "hi": t.r_max_mm, "ch": ch.name,
+                 "edges": np.array2string(edges, precision=4, threshold=8)[:120]})
 
 
 def _radial_edges_mm(bins: BinSpec, channels: list[ChannelOptics]) -> np.ndarray:

@@ -1,4 +1,6 @@
-"""Deterministic merge of shard tallies into a result with means and standard errors."""
+"""Deterministic merge of shard tallies into a result with means and standard errors: the fold in
+shard order (:class:`Fold`, streaming: one float64 accumulator, saved and restored between
+processes) and :func:`merge` of a set of shards, which is that fold."""
 
 from __future__ import annotations
 
@@ -58,11 +60,14 @@ class Fold:
     """Shard tallies added one at a time in shard order (0, 1, 2, ...) into float64 sums.
 
     After adding shards 0..K-1, :meth:`result` is bitwise the merge of those K shards: the sums
-    are formed in the same order whether the shards come all at once or one by one.
+    are formed in the same order whether the shards come all at once or one by one.  Memory is
+    one accumulator plus the shard being added, whatever the shard count.  ``medium_index`` is
+    the medium's index in its job (:mod:`schema.media`); :meth:`state` / :meth:`from_state`
+    save and restore a fold between processes.
     """
 
-    def __init__(self, spec: SimulationSpec):
-        self.spec = spec
+    def __init__(self, spec: SimulationSpec, medium_index: int = 0):
+        self.spec, self.medium_index = spec, medium_index
         self.stats: dict[str, list[np.ndarray]] = {}
         self.n_sum = self.nn_sum = self.k = 0
         self.shard_info: list[dict] = []
@@ -71,6 +76,11 @@ class Fold:
     def shards(self) -> int:
         """Shards folded so far (0..shards-1)."""
         return len(self.shard_info)
+
+    @property
+    def complete(self) -> bool:
+        """Whether every shard of the spec has been folded."""
+        return self.shards == self.spec.shards
 
     def add(self, tally: ShardTally) -> None:
         """Fold the next shard; MergeError if it is not shard :attr:`shards` or its quantities differ."""
@@ -97,10 +107,28 @@ class Fold:
         return Result(
             spec=self.spec, configs=build_configs(self.spec), layout=bin_layout(self.spec), stats=self.stats,
             n_sum=self.n_sum, nn_sum=self.nn_sum, k=self.k, shard_info=list(self.shard_info),
+            medium_index=self.medium_index,
         )  # fmt: skip
 
+    def state(self) -> ShardTally:
+        """The fold as a ShardTally (``shard_index`` = shards folded; info holds the shards' info),
+        to save with :meth:`ShardTally.to_bytes`."""
+        return ShardTally(self.shards, self.stats, self.n_sum, self.nn_sum, self.k,
+                          {"shard_info": self.shard_info, "medium_index": self.medium_index})
 
-def merge(spec: SimulationSpec, tallies: Sequence[ShardTally], *, prefix: bool = False) -> Result:
+    @classmethod
+    def from_state(cls, spec: SimulationSpec, state: ShardTally) -> "Fold":
+        """The fold saved by :meth:`state`."""
+        fold = cls(spec, int(state.info["medium_index"]))
+        fold.stats = state.stats
+        fold.n_sum, fold.nn_sum, fold.k = state.n_sum, state.nn_sum, state.k
+        fold.shard_info = list(state.info["shard_info"])
+        if fold.shards != state.shard_index:
+            raise MergeError(f"fold state says {state.shard_index} shards but lists {fold.shards}")
+        return fold
+
+
+def merge(spec: SimulationSpec, tallies: Sequence[ShardTally], *, prefix: bool = False, medium_index: int = 0) -> Result:
     """Sum the shards' statistics in shard order (float64), so the result is bitwise fixed.
 
     Requires exactly one tally per shard index 0..spec.shards-1, in any order; with prefix=True,
@@ -113,7 +141,7 @@ def merge(spec: SimulationSpec, tallies: Sequence[ShardTally], *, prefix: bool =
     if not indices or indices != list(range(k)) or k > spec.shards:
         want = f"shards 0..K-1 for some K in [1, {spec.shards}]" if prefix else f"shards 0..{spec.shards - 1}"
         raise MergeError(f"merge needs {want} exactly once; received {indices[:20]}")
-    fold = Fold(spec)
+    fold = Fold(spec, medium_index)
     for t in ordered:
         fold.add(t)
     return fold.result()

@@ -20,7 +20,10 @@ from schema.version import code_version
 
 from .merge import Result
 
-__all__ = ["radial_table", "bins_table", "summary_table", "summary", "write_tables", "TABLE_FILES"]
+__all__ = [
+    "radial_table", "bins_table", "summary_table", "summary_rows", "summary", "summary_head", "run_facts",
+    "engine_fact", "target_entry", "write_tables", "TableWriter", "TABLE_FILES", "ROW_GROUP_ROWS",
+]
 
 COMPONENTS3 = ("single", "multiple", "total")
 TABLE_FILES = ("radial.parquet", "bins.parquet", "summary.parquet", "summary.json")
@@ -119,46 +122,111 @@ def summary_table(result: Result) -> pa.Table:
     return pa.Table.from_pylist(rows, schema=SUMMARY_SCHEMA)
 
 
+RNG_FACT = "philox4x32-10, key sha256(seed|configuration), counter (photon, draw, purpose)"
+UNITS = {"length": "mm", "Rd_r": "1/mm^2", "S": "1/(mm^2 sr)", "G": "fraction of incident power"}
+NORMALISATION = "per unit incident power; the walk carries 1 - R_spec, so S includes the entry Fresnel factor"
+
+
+def engine_fact(shard_info: list[dict]) -> str | list[str]:
+    """The engine of the shards ("compiled" / "eager"), or the sorted list if they differ."""
+    engines = sorted({i.get("engine", "?") for i in shard_info})
+    return engines[0] if len(engines) == 1 else engines
+
+
 def run_facts(result: Result) -> dict:
     """Deterministic facts about the run, stored in every table's metadata."""
-    engines = sorted({i.get("engine", "?") for i in result.shard_info})
     return {
         "code_version": code_version(),
-        "engine": engines[0] if len(engines) == 1 else engines,
-        "rng": "philox4x32-10, key sha256(seed|configuration), counter (photon, draw, purpose)",
+        "engine": engine_fact(result.shard_info),
+        "rng": RNG_FACT,
         "photons_per_config": int(result.n_sum),
         "shards": len(result.shard_info),  # the first K shards of a run to a target error
         "batches": int(result.k),
         "seed": result.spec.seed,
         "channels": [c.model_dump() for c in result.spec.channels()],
         "eta": result.configs.eta,
-        "units": {"length": "mm", "Rd_r": "1/mm^2", "S": "1/(mm^2 sr)", "G": "fraction of incident power"},
-        "normalisation": "per unit incident power; the walk carries 1 - R_spec, so S includes the entry Fresnel factor",
+        "units": UNITS,
+        "normalisation": NORMALISATION,
     }
 
 
 def summary(result: Result) -> dict:
     """The summary printed by `bssrdf simulate --json` and stored as summary.json."""
-    doc = {
-        "name": result.spec.name,
-        "spec_hash": result.spec.spec_hash(),
-        "run": run_facts(result),
-        "results": summary_rows(result),
-    }
-    if result.target is not None:
-        doc["target"] = result.target.as_dict()  # workers.target.TargetStatus: reached, photons, worst check
-    return doc
+    return summary_head(result.spec, run_facts(result), **target_entry(result)) | {"results": summary_rows(result)}
+
+
+def summary_head(spec, run: dict, **extra) -> dict:
+    """summary.json without its rows: name, spec hash, run facts and ``extra`` entries."""
+    return {"name": spec.name, "spec_hash": spec.spec_hash(), "run": run, **extra}
+
+
+def target_entry(result: Result) -> dict:
+    """{"target": status} of a run to a target error (workers.target.TargetStatus: reached,
+    photons, worst check), else {}."""
+    return {} if result.target is None else {"target": result.target.as_dict()}
+
+
+ROW_GROUP_ROWS = 1 << 20
+"""Most rows per Parquet row group (a medium's table is one or more row groups of its own)."""
+
+
+class TableWriter:
+    """The tables of a job written medium by medium: radial, bins and summary Parquet files
+    open for the whole job (each medium appended as its own row groups, so memory is one
+    medium's tables), summary.json written at :meth:`close` from the summary rows.
+
+    ``run`` (the run facts) goes into every table's metadata, so it is known before the first
+    medium is written; ``extra`` entries go into summary.json beside the rows.
+    """
+
+    def __init__(self, out_dir: str, spec, run: dict, filesystem: pafs.FileSystem | None = None, extra: dict | None = None):
+        self.fs = filesystem or pafs.LocalFileSystem()
+        self.out_dir = out_dir
+        self.head = summary_head(spec, run, **(extra or {}))
+        self.fs.create_dir(out_dir, recursive=True)
+        meta = table_metadata(spec.canonical_json(), run)
+        self._streams, self._writers = [], {}
+        for name, schema in (("radial", RADIAL_SCHEMA), ("bins", BINS_SCHEMA), ("summary", SUMMARY_SCHEMA)):
+            stream = self.fs.open_output_stream(f"{out_dir}/{name}.parquet")
+            self._streams.append(stream)
+            self._writers[name] = pq.ParquetWriter(stream, schema.with_metadata(meta), compression="zstd")
+
+    def add(self, result: Result) -> None:
+        """Append one medium's tables."""
+        self.add_tables(radial_table(result), bins_table(result), summary_table(result))
+
+    def add_tables(self, radial: pa.Table, bins: pa.Table, summary: pa.Table) -> None:
+        """Append one medium's tables, already built (e.g. read back from a part file)."""
+        for name, table in (("radial", radial), ("bins", bins), ("summary", summary)):
+            self._writers[name].write_table(table, row_group_size=ROW_GROUP_ROWS)
+
+    def close(self) -> list[str]:
+        """Finish the Parquet files and write summary.json; returns the file names."""
+        for writer in self._writers.values():
+            writer.close()
+        for stream in self._streams:
+            stream.close()
+        rows = pq.ParquetFile(f"{self.out_dir}/summary.parquet", filesystem=self.fs)
+        with self.fs.open_output_stream(f"{self.out_dir}/summary.json") as f:
+            _write_summary_json(f, self.head, (row for batch in rows.iter_batches() for row in batch.to_pylist()))
+        return list(TABLE_FILES)
+
+
+def _write_summary_json(f, head: dict, rows) -> None:
+    """summary.json streamed row by row: the head's keys and "results", keys sorted, indent 2."""
+    doc = dict(head, results=[])
+    text = json.dumps(doc, indent=2, sort_keys=True)
+    before, after = text.split('"results": []', 1)
+    f.write((before + '"results": [').encode())
+    for i, row in enumerate(rows):
+        body = json.dumps(row, indent=2, sort_keys=True).replace("\n", "\n    ")
+        f.write(((",\n    " if i else "\n    ") + body).encode())
+    f.write(("\n  ]" + after + "\n").encode())
 
 
 def write_tables(result: Result, out_dir: str, filesystem: pafs.FileSystem | None = None) -> list[str]:
-    """Write the tables into out_dir (on `filesystem`, local by default); returns the file names."""
-    fs = filesystem or pafs.LocalFileSystem()
-    fs.create_dir(out_dir, recursive=True)
-    meta = table_metadata(result.spec.canonical_json(), run_facts(result))
-    for name, table in (("radial", radial_table(result)), ("bins", bins_table(result)), ("summary", summary_table(result))):
-        table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
-        with fs.open_output_stream(f"{out_dir}/{name}.parquet") as f:
-            pq.write_table(table, f, compression="zstd")
-    with fs.open_output_stream(f"{out_dir}/summary.json") as f:
-        f.write((json.dumps(summary(result), indent=2, sort_keys=True) + "\n").encode())
-    return list(TABLE_FILES)
+    """Write one medium's tables into out_dir (on `filesystem`, local by default); returns the
+    file names."""
+    writer = TableWriter(out_dir, result.spec, run_facts(result), filesystem, extra=target_entry(result))
+    writer.add(result)
+    return writer.close()

@@ -18,8 +18,9 @@ import multiprocessing as mp
 import resource
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
-from typing import Callable, Iterable
+from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Callable, Iterable, Iterator, TypeVar
 
 import torch
 
@@ -29,7 +30,23 @@ from .cores import default_workers
 from .shard import run_shard
 from .tally import ShardTally
 
-__all__ = ["ShardPool", "default_workers"]
+__all__ = ["ShardPool", "default_workers", "in_order"]
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def in_order(submit: Callable[[T], Future], items: Iterable[T], window: int) -> Iterator:
+    """Results of submit(item) for each item, in item order, at most ``window`` submitted and not
+    yet yielded. Items are drawn from ``items`` only when there is room, so a lazy iterable can
+    look at what was yielded before deciding what comes next (a fold skipping shards)."""
+    pending: deque[Future] = deque()
+    for item in items:
+        pending.append(submit(item))
+        if len(pending) >= window:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
 
 
 _progress_queue = None  # set in each worker process by _init_worker
@@ -100,15 +117,32 @@ class ShardPool:
         The tallies' info gains "cpu_s", the CPU time of the shard in its process, and
         "maxrss_mib", that process's memory peak so far.
         """
-        doc = spec.model_dump(mode="json")
-        futures = [self._pool.submit(_run, doc, i, progress is not None) for i in indices]
+        indices = list(indices)
+        return list(self.imap(((spec, i) for i in indices), progress, window=max(1, len(indices))))
+
+    def imap(self, items: Iterable[tuple[SimulationSpec, int]], progress: Callable[[int], None] | None = None,
+             window: int | None = None) -> Iterator[ShardTally]:
+        """run_shard(spec, index) of each item, in item order, with at most ``window`` (default
+        two per process) submitted ahead of the one being yielded (see :func:`in_order`)."""
+        last: list = [None, None]  # the last spec and its JSON form (a sweep's media come in runs)
+
+        def submit(item: tuple[SimulationSpec, int]) -> Future:
+            spec, index = item
+            if last[0] is not spec:
+                last[:] = [spec, spec.model_dump(mode="json")]
+            return self._pool.submit(_run, last[1], index, progress is not None)
+
+        results = in_order(submit, items, window or 2 * self.workers)
         if progress is None:
-            return [ShardTally.from_bytes(f.result()) for f in futures]
+            for data in results:
+                yield ShardTally.from_bytes(data)
+            return
         stop = threading.Event()
         drain = threading.Thread(target=self._drain, args=(progress, stop), daemon=True)
         drain.start()
         try:
-            return [ShardTally.from_bytes(f.result()) for f in futures]
+            for data in results:
+                yield ShardTally.from_bytes(data)
         finally:
             stop.set()
             drain.join()

@@ -23,20 +23,23 @@ from .cores import default_workers
 # torch and the walk are imported where they are used: `bssrdf run` and `bssrdf --help` build
 # this module's parser, and a worker-launching parent must not spend seconds importing torch.
 
-__all__ = ["add_parser", "main", "simulate", "simulate_to_target", "run_shards", "format_summary"]
+__all__ = ["add_parser", "main", "simulate", "simulate_to_target", "simulate_sweep", "run_shards", "run_tasks", "format_summary"]
 
 
 def simulate(spec, *, progress=None, threads: int | None = None, processes: int | None = None):
-    """Run every shard of `spec` and merge them; returns the Result.
+    """Run every shard of a single-medium `spec` and merge them; returns the Result.
 
     processes > 1 runs the shards on that many worker processes (:class:`workers.pool.ShardPool`,
     what the command line does); otherwise they run in this process on `threads` threads (default:
     one per core), each with one torch intra-op thread.  The merge sums in shard order, so the
     result is bitwise the same for any number of threads or processes.  A spec with a ``target``
-    runs to it (:func:`simulate_to_target`).
+    runs to it (:func:`simulate_to_target`).  A sweep has one Result per medium:
+    :func:`simulate_sweep` writes its tables.
     """
     from .merge import merge
 
+    if spec.is_sweep:
+        raise ValueError("simulate() runs one medium; a sweep's tables are written by simulate_sweep(spec, out_dir)")
     if spec.target is not None:
         return simulate_to_target(spec, progress=progress, threads=threads, processes=processes)
     return merge(spec, run_shards(spec, range(spec.shards), progress=progress, threads=threads, processes=processes))
@@ -77,38 +80,111 @@ def simulate_to_target(spec, *, progress=None, threads: int | None = None, proce
 def run_shards(spec, indices, *, progress=None, threads: int | None = None, processes: int | None = None) -> list:
     """run_shard for each index, on `processes` worker processes or `threads` threads of this
     process (one torch thread each); the tallies in the order of indices."""
+    indices = list(indices)
+    return list(run_tasks(((spec, i) for i in indices), progress=progress, threads=threads, processes=processes,
+                          workers_hint=len(indices), window=max(1, len(indices))))
+
+
+def run_tasks(items, *, progress=None, threads: int | None = None, processes: int | None = None,
+              workers_hint: int | None = None, window: int | None = None):
+    """run_shard(spec, index) of each item of `items` (lazily drawn), on `processes` worker
+    processes or `threads` threads; yields the tallies in item order with at most `window`
+    (default two per worker) running or waiting ahead (:func:`workers.pool.in_order`).
+    `workers_hint`, if given, caps the workers (no more than there are items)."""
     import torch
 
-    from .pool import ShardPool
+    from .pool import ShardPool, in_order
     from .shard import run_shard
 
-    indices = list(indices)
-    if processes is not None and min(processes, len(indices)) > 1:
-        with ShardPool(min(processes, len(indices))) as pool:
-            return pool.run(spec, indices, progress)
-    threads = max(1, min(threads or os.cpu_count() or 1, len(indices)))
+    cap = workers_hint if workers_hint is not None else 1 << 30
+    if processes is not None and min(processes, cap) > 1:
+        with ShardPool(min(processes, cap)) as pool:
+            yield from pool.imap(items, progress, window=window)
+        return
+    threads = max(1, min(threads or os.cpu_count() or 1, cap))
     previous = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         if threads == 1:
-            return [run_shard(spec, i, progress=progress) for i in indices]
+            for spec, i in items:
+                yield run_shard(spec, i, progress=progress)
+            return
         with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="shard") as pool:
-            return list(pool.map(lambda i: run_shard(spec, i, progress=progress), indices))
+            submit = lambda item: pool.submit(run_shard, item[0], item[1], progress=progress)  # noqa: E731
+            yield from in_order(submit, items, window or 2 * threads)
     finally:
         torch.set_num_threads(previous)
 
 
-def format_summary(doc: dict) -> str:
-    """Human-readable table of a summary document (see workers.output.summary)."""
-    lines = [f"{doc['name']}  (spec {doc['spec_hash'][:12]}, {doc['run']['photons_per_config']} photons per angle and channel)"]
-    lines.append(f"{'estimator':<12}{'theta_i':>8} {'ch':<4}{'R_spec':>9}  {'single':>20}  {'multiple':>20}  {'total':>20}")
+def simulate_sweep(spec, out_dir: str, *, filesystem=None, progress=None, threads: int | None = None,
+                   processes: int | None = None, stop_rule=None) -> list[str]:
+    """Run every medium of the sweep `spec` in task order and write the job's
+    tables into `out_dir`; returns the file names.
+
+    Tallies are folded as they arrive in task order (:class:`workers.sweep.JobFold`), each
+    finished medium's tables go to a part under ``out_dir/.parts`` and the parts are streamed
+    into the tables at the end, so memory is one medium's accumulator and tables plus the shards
+    in flight.  A medium stops early when `stop_rule` holds (default: the spec's target error,
+    :func:`workers.sweep.target_rule`); its shards past the stop are skipped.
+    """
+    import functools
+    from collections import deque
+
+    import pyarrow.fs as pafs
+
+    from .sweep import JobFold, read_part, target_rule, write_part, write_sweep_tables
+
+    fs = filesystem or pafs.LocalFileSystem()
+    fold = JobFold(spec, stop_rule if stop_rule is not None else target_rule(spec))
+    medium_spec = functools.lru_cache(maxsize=4)(spec.medium_spec)  # one object per medium: the pool sends it once
+    parts = f"{out_dir}/.parts"
+    submitted: deque[int] = deque()
+
+    def items():
+        task, n = 0, spec.task_count()
+        while (task := max(task, fold.next_task)) < n:
+            medium, shard = spec.task_of(task)
+            submitted.append(task)
+            yield medium_spec(medium), shard
+            task += 1
+
+    for tally in run_tasks(items(), progress=progress, threads=threads, processes=processes):
+        task = submitted.popleft()
+        if task < fold.next_task:
+            continue  # past its medium's early stop: never counted
+        result = fold.add(task, tally)
+        if result is not None:
+            write_part(result, f"{parts}/m{result.medium_index:06d}", fs)
+    tables = (read_part(f"{parts}/m{m:06d}", fs) for m in range(spec.n_media))
+    files = write_sweep_tables(spec, fold.media, tables, out_dir, fs)
+    fs.delete_dir(parts)
+    return files
+
+
+def format_summary(doc: dict, max_rows: int = 60) -> str:
+    """Human-readable table of a summary document (see workers.output.summary); a sweep's rows
+    carry the medium's coordinates; beyond `max_rows` lines the rest is counted, not shown."""
+    results = doc["results"]
+    sweep = "media" in doc["run"]
+    photons = doc["run"]["photons_per_config"]
+    per = "photons per angle and channel" + (" of each medium" if sweep else "")
+    if sweep and len(set(photons)) == 1:
+        photons = photons[0]
+    lines = [f"{doc['name']}  (spec {doc['spec_hash'][:12]}, {photons} {per}"
+             + (f", {doc['run']['media']} media)" if sweep else ")")]
+    medium_cols = f"{'medium':>6} {'albedo':>8} {'g':>6} {'eta':>6}  " if sweep else ""
+    lines.append(f"{medium_cols}{'estimator':<12}{'theta_i':>8} {'ch':<4}{'R_spec':>9}  {'single':>20}  {'multiple':>20}  {'total':>20}")
     rows: dict[tuple, dict] = {}
-    for r in doc["results"]:
-        rows.setdefault((r["estimator"], r["incidence_deg"], r["channel"]), {})[r["component"]] = r
-    for (est, inc, ch), comps in rows.items():
+    for r in results:
+        rows.setdefault((r.get("medium", 0), r["estimator"], r["incidence_deg"], r["channel"]), {})[r["component"]] = r
+    for n, ((medium, est, inc, ch), comps) in enumerate(rows.items()):
+        if n == max_rows:
+            lines.append(f"... {len(rows) - max_rows} more rows (all of them in summary.json / summary.parquet)")
+            break
         cells = [f"{comps[c]['Rd']:.5f} +- {comps[c]['Rd_stderr']:.5f}" for c in ("single", "multiple", "total")]
-        r_spec = comps["total"]["R_spec"]
-        lines.append(f"{est:<12}{inc:>8.1f} {ch:<4}{r_spec:>9.5f}  {cells[0]:>20}  {cells[1]:>20}  {cells[2]:>20}")
+        total = comps["total"]
+        prefix = f"{medium:>6} {total['albedo']:>8.5f} {total['g']:>6.3f} {total['eta']:>6.3f}  " if sweep else ""
+        lines.append(f"{prefix}{est:<12}{inc:>8.1f} {ch:<4}{total['R_spec']:>9.5f}  {cells[0]:>20}  {cells[1]:>20}  {cells[2]:>20}")
     lines.append("Rd = diffuse reflectance (specular excluded) per unit incident power, +- one standard error.")
     if "target" in doc:
         t, w = doc["target"], doc["target"]["worst"]
@@ -189,16 +265,23 @@ def main(args: argparse.Namespace) -> int:
     except (SpecError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    n_cfg = len(spec.incidence_deg) * len(spec.channels())
-    progress = _Progress(spec.photons * n_cfg, enabled=sys.stderr.isatty() and not args.no_progress)
+    n_cfg = len(spec.incidence_deg) * len(spec.medium_spec(0).channels())
+    progress = _Progress(spec.photons * n_cfg * spec.n_media, enabled=sys.stderr.isatty() and not args.no_progress)
+    out = str(Path(args.out).resolve())
     t0 = time.perf_counter()
     try:
-        result = simulate(spec, progress=progress, threads=1, processes=args.workers)
+        if spec.is_sweep:
+            simulate_sweep(spec, out, progress=progress, threads=1, processes=args.workers)
+        else:
+            result = simulate(spec, progress=progress, threads=1, processes=args.workers)
     finally:
         progress.close()
+    if spec.is_sweep:
+        doc = json.loads(Path(out, "summary.json").read_text())
+    else:
+        write_tables(result, out)
+        doc = summary(result)
     elapsed = time.perf_counter() - t0
-    write_tables(result, str(Path(args.out).resolve()))
-    doc = summary(result)
     if args.json:
         print(json.dumps(dict(doc, out=str(args.out), elapsed_s=round(elapsed, 3)), sort_keys=True))
     else:
