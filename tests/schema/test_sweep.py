@@ -213,3 +213,12 @@ def test_sweep_json_schema_lists_both_forms():
     assert {"required": ["sweep"]} in schema["oneOf"] and {"required": ["medium"]} in schema["oneOf"]
     assert "sweep" in schema["properties"]
     assert math.isclose(SweepSpec.model_json_schema()["properties"]["g"]["items"]["exclusiveMaximum"], 1)
+
+
+def test_radial_target_must_hold_a_bin_of_every_medium():
+    # max_mfp 16: medium (0.99, 0.9) reaches 16 / (1 - 0.891) = 147 mm, medium (0.1, 0) 16 / 0.9 = 17.8 mm
+    sweep = {"albedo": [0.1, 0.99], "g": [0.0, 0.9], "eta": [1.3]}
+    target = {"rel_stderr": 0.1, "radial": {"rel_stderr": 0.1, "r_min_mm": 20.0, "r_max_mm": 200.0}}
+    found = problems(sweep_spec(sweep=sweep, target=target))
+    assert found[0][0] == "target" and "albedo 0.1, g 0" in found[0][1] and "widen it" in found[0][1]
+    parse_spec(sweep_spec(sweep=sweep, target={**target, "radial": {**target["radial"], "r_min_mm": 1.0}}))

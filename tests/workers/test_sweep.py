@@ -123,7 +123,7 @@ def test_fold_saved_and_restored_midway_gives_the_merge_bytes(medium_tallies):
 def test_fold_refuses_shards_out_of_order(medium_tallies):
     single, tallies = medium_tallies
     fold = Fold(single)
-    with pytest.raises(MergeError, match="expects shard 0"):
+    with pytest.raises(MergeError, match="expected shard 0"):
         fold.add(tallies[1])
     with pytest.raises(MergeError, match="no shard"):
         fold.result()
@@ -162,3 +162,24 @@ def test_simulate_sweep_with_a_stop_rule_skips_the_rest_of_that_medium(tmp_path)
     summary = pq.read_table(tmp_path / "summary.parquet")
     photons = dict(zip(summary["medium"].to_pylist(), summary["photons"].to_pylist()))
     assert photons == {0: 36 // 4, 1: 36}
+
+
+def test_sweep_to_a_target_error_equals_each_mediums_own_run_to_it(tmp_path):
+    """With a target, each medium stops at the first K shards that meet it (workers.target), the
+    same K and the same bits as that medium's single-medium run to the target: here the bright
+    medium stops after one shard, the dark one never meets it and runs all six."""
+    spec = sweep(sweep={"albedo": [0.3, 0.9], "g": [0.0], "eta": [1.3]}, estimator="exits", shards=6,
+                 photons=240, target={"rel_stderr": 0.12})
+    simulate_sweep(spec, str(tmp_path / "sweep"), threads=2)
+    doc = __import__("json").loads((tmp_path / "sweep" / "summary.json").read_text())
+    assert [t["reached"] for t in doc["target"]] == [False, True]
+    for m in range(2):
+        single = spec.medium_spec(m)
+        result = simulate(single, threads=1)
+        assert result.target.as_dict() == doc["target"][m]
+        assert len(result.shard_info) == (6 if m == 0 else 1)
+        write_tables(result, str(tmp_path / f"m{m}"))
+        assert doc["run"]["shards_folded"][m] == len(result.shard_info)
+        for name in TABLES:
+            theirs = pq.read_table(tmp_path / f"m{m}" / f"{name}.parquet").drop(["medium"])
+            assert _rows(tmp_path / "sweep", name, m).equals(theirs), (m, name)
