@@ -58,6 +58,9 @@ class Settings(BaseSettings):
         None, gt=0, description="Heartbeat period of a worker, seconds; default lease_seconds / 4."
     )
     max_attempts: int = Field(3, ge=1, description="Claims of one task before its job fails.")
+    stall_seconds: float = Field(
+        300.0, gt=0, description="A shard reporting no progress this long (after its first report) stops "
+        "heartbeating: its lease expires and another worker redoes it.")
     api_tokens: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="Bearer tokens accepted for mutating endpoints: a JSON list of strings.")
     host: str = Field("127.0.0.1", description="Bind address of `bssrdf serve`.")

@@ -17,6 +17,7 @@ import argparse
 import json
 import logging
 import os
+import random
 import signal
 import socket
 import sys
@@ -41,17 +42,39 @@ class _Abandon(Exception):
 
 
 class _Heartbeat(threading.Thread):
-    """Extends a lease every ``period`` seconds until stopped; sets ``lost`` if it was lost."""
+    """Extends a lease every ``period`` seconds until stopped; sets ``lost`` if it was lost.
 
-    def __init__(self, store: JobStore, lease: Lease, lease_seconds: float, period: float, photons) -> None:
+    Liveness follows progress, not the process: once the task has reported progress, a gap of
+    more than ``stall_seconds`` since its last report (a hung walk) stops the heartbeats, so the
+    lease expires and another worker redoes the task; ``stalled`` and ``lost`` are set, and the
+    walk, should it ever resume, is abandoned at its next progress call.
+    """
+
+    def __init__(self, store: JobStore, lease: Lease, lease_seconds: float, period: float, photons,
+                 last_progress=None, stall_seconds: float | None = None) -> None:
         super().__init__(name=f"heartbeat-{lease.task_id}", daemon=True)
         self.store, self.lease, self.lease_seconds, self.period = store, lease, lease_seconds, period
         self.photons = photons  # callable -> photons done so far
+        self.last_progress = last_progress  # callable -> monotonic time of the last progress report, or None
+        self.stall_seconds = stall_seconds
         self.lost = threading.Event()
+        self.stalled = threading.Event()
         self._stop_event = threading.Event()
+
+    def _is_stalled(self) -> bool:
+        if self.stall_seconds is None or self.last_progress is None:
+            return False
+        last = self.last_progress()
+        return last is not None and time.monotonic() - last > self.stall_seconds
 
     def run(self) -> None:
         while not self._stop_event.wait(self.period):
+            if self._is_stalled():
+                log.error("no progress: heartbeats stopped, the lease will expire and the task be redone elsewhere",
+                          extra={"task": self.lease.task_id, "stall_s": self.stall_seconds})
+                self.stalled.set()
+                self.lost.set()
+                return
             try:
                 ok = self.store.heartbeat(self.lease, self.lease_seconds, photons=self.photons())
             except DBAPIError as exc:  # transient DB trouble: try again next period
@@ -72,13 +95,14 @@ class Worker:
     def __init__(
         self, store: JobStore, storage: DatasetStorage, *, worker_id: str | None = None, lease_seconds: float = 60.0,
         heartbeat_seconds: float | None = None, once: bool = False, max_tasks: int | None = None,
-        poll_seconds: float = 1.0,
+        poll_seconds: float = 1.0, stall_seconds: float | None = 300.0,
     ) -> None:
         self.store, self.storage = store, storage
         self.worker_id = worker_id or f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
         self.lease_seconds = lease_seconds
         self.heartbeat_seconds = heartbeat_seconds or lease_seconds / 4
         self.once, self.max_tasks, self.poll_seconds = once, max_tasks, poll_seconds
+        self.stall_seconds = stall_seconds
         self.stopping = threading.Event()
         self.processed = 0
         self._specs: dict[str, SimulationSpec] = {}
@@ -114,9 +138,12 @@ class Worker:
                 self.stopping.wait(min(30.0, self.poll_seconds * 2**db_errors))
                 continue
             if lease is None:
-                if self.once:
+                # --once: leave only when no live job has a task that can still become claimable
+                # (a merge waiting for running shards, a retry backing off, a lease to expire).
+                if self.once and self.store.pending_tasks() == 0:
                     break
-                self.stopping.wait(self.poll_seconds)
+                # Jitter: a fleet started together does not poll in lock step.
+                self.stopping.wait(self.poll_seconds * random.uniform(0.5, 1.5))
                 continue
             self.process(lease)
             self.processed += 1
@@ -132,11 +159,13 @@ class Worker:
                   "shard": lease.shard_index, "attempt": lease.attempts, "token": lease.token}
         log.info("task claimed", extra=fields)
         photons = [0]
-        beat = _Heartbeat(self.store, lease, self.lease_seconds, self.heartbeat_seconds, lambda: photons[0])
+        last_progress: list[float | None] = [None]  # the stall clock starts at the first report (after compiling)
+        beat = _Heartbeat(self.store, lease, self.lease_seconds, self.heartbeat_seconds, lambda: photons[0],
+                          lambda: last_progress[0], self.stall_seconds if lease.kind == TaskKind.SHARD else None)
         beat.start()
         try:
             if lease.kind == TaskKind.SHARD:
-                self._process_shard(lease, beat, photons, fields)
+                self._process_shard(lease, beat, photons, last_progress, fields)
             else:
                 self._process_merge(lease, beat, fields)
         except (LeaseLost, JobNotFound) as exc:  # JobNotFound: the job was deleted meanwhile
@@ -162,13 +191,15 @@ class Worker:
             self._specs[lease.job_id] = parse_spec(json.loads(lease.spec_json))
         return self._specs[lease.job_id]
 
-    def _process_shard(self, lease: Lease, beat: _Heartbeat, photons: list[int], fields: dict) -> None:
+    def _process_shard(self, lease: Lease, beat: _Heartbeat, photons: list[int], last_progress: list,
+                       fields: dict) -> None:
         # Deferred, not a cycle: workers.shard imports torch (seconds), and building the `bssrdf`
         # parser imports this module; only a process that runs a shard pays for it.
         from workers.shard import run_shard
 
         def progress(n: int) -> None:
             photons[0] += int(n)
+            last_progress[0] = time.monotonic()
             if beat.lost.is_set():
                 raise _Abandon("lease lost")
             if self.stopping.is_set():
@@ -236,11 +267,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", help="job store URL (default: BSSRDF_DATABASE_URL or the local SQLite store)")
     p.add_argument("--storage", help="dataset storage URI (default: BSSRDF_STORAGE_URI or the local data dir)")
-    p.add_argument("--once", action="store_true", help="exit as soon as no task is claimable (batch schedulers)")
+    p.add_argument("--once", action="store_true", help="exit once no live job has work left that could become "
+                   "claimable (batch schedulers); a merge waiting for shards or a retry backing off keeps it")
     p.add_argument("--max-tasks", type=int, default=None, metavar="N", help="exit after N tasks")
     p.add_argument("--lease-seconds", type=float, default=None, metavar="S", help="lease length (default 60)")
     p.add_argument("--heartbeat-seconds", type=float, default=None, metavar="S", help="default: lease / 4")
-    p.add_argument("--poll-seconds", type=float, default=1.0, metavar="S", help="idle wait between claims")
+    p.add_argument("--poll-seconds", type=float, default=1.0, metavar="S",
+                   help="idle wait between claims (x a random 0.5-1.5, so a fleet does not poll in step)")
+    p.add_argument("--stall-seconds", type=float, default=None, metavar="S",
+                   help="a shard that reports no progress for S seconds loses its lease (default: "
+                   "BSSRDF_STALL_SECONDS, 300; the clock starts at its first report, after any compile)")
     p.add_argument("--worker-id", default=None, help="name in leases and logs (default host:pid:random)")
 
 
@@ -260,6 +296,7 @@ def main(args: argparse.Namespace) -> int:
     worker = Worker(
         store, storage, worker_id=args.worker_id, lease_seconds=lease_seconds, heartbeat_seconds=heartbeat,
         once=args.once, max_tasks=args.max_tasks, poll_seconds=args.poll_seconds,
+        stall_seconds=args.stall_seconds or settings.stall_seconds,
     )
     try:
         return worker.run()

@@ -109,8 +109,7 @@ class QueueMixin(StoreBase):
                     sa.select(jobs.c.spec_json).where(jobs.c.id == row.job_id)
                 ).scalar_one()
         if row is None:
-            self.reap_expired()  # nothing claimable: a good moment to fail exhausted leases
-            return None
+            return None  # the reaper runs every reap_interval_s above, not on every empty claim
         return Lease(
             task_id=row.id, token=row.lease_token, job_id=row.job_id, kind=TaskKind(row.kind),
             shard_index=row.shard_index, attempts=row.attempts, max_attempts=row.max_attempts,
@@ -265,6 +264,17 @@ class QueueMixin(StoreBase):
                           error=f"{what} failed after {row.attempts} attempts: {error}")
             return False
 
+    def pending_tasks(self) -> int:
+        """Tasks of live jobs that are or may become claimable: queued (a retry backing off
+        included), leased (running, or a lease that will expire) and waiting merges. Zero means
+        no work can appear without a new submission (``bssrdf worker --once`` exits then)."""
+        with self.engine.connect() as conn:
+            return int(conn.execute(
+                sa.select(sa.func.count()).select_from(tasks).join(jobs, jobs.c.id == tasks.c.job_id).where(
+                    jobs.c.state.in_(list(ACTIVE_JOB_STATES)),
+                    tasks.c.state.in_([TaskState.QUEUED, TaskState.LEASED, TaskState.WAITING]))
+            ).scalar_one())
+
     def release(self, lease: Lease) -> bool:
         """Give a lease back unfinished (worker stopping): queued again, not counted as an attempt."""
         with self._tx() as conn:
@@ -280,7 +290,8 @@ class QueueMixin(StoreBase):
     def reap_expired(self) -> int:
         """Fail tasks whose lease expired with no attempts left, and their jobs. Returns how many.
 
-        ``claim`` calls it at most every ``reap_interval_s`` seconds and whenever it finds nothing.
+        ``claim`` calls it at most every ``reap_interval_s`` seconds (an idle fleet polling does
+        not run it once per poll).
         """
         self._next_reap = time.monotonic() + self.reap_interval_s
         now = self._now()

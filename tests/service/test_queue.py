@@ -120,8 +120,31 @@ def test_expired_leases_exhaust_attempts_and_fail_job(store):
         assert store.claim("dying", SHORT) is not None
         time.sleep(SHORT + 0.1)
     assert store.claim("w", 30) is None
+    store.reap_expired()  # claim runs it every reap_interval_s, not on every empty claim
     failed = store.get_job(job.id)
     assert failed.state == JobState.FAILED and "lease expired" in failed.error
+
+
+def test_idle_claims_do_not_run_the_reaper_each_time(store, monkeypatch):
+    calls = []
+    real = store.reap_expired
+    monkeypatch.setattr(store, "reap_expired", lambda: calls.append(1) or real())
+    for _ in range(20):
+        assert store.claim("idle", 30) is None
+    assert len(calls) <= 1  # at most once per reap_interval_s (5 s)
+
+
+def test_pending_tasks_counts_what_can_still_become_claimable(store):
+    assert store.pending_tasks() == 0
+    job = store.submit(FakeSpec(shards=2))
+    assert store.pending_tasks() == 3  # two shards and the waiting merge
+    a, b = store.claim("w", 30), store.claim("w", 30)
+    store.complete_shard(a, b"x", photons=1, elapsed_s=0.0)
+    assert store.pending_tasks() == 2  # one running shard, the merge still waits for it
+    assert store.fail_task(b, "boom")  # retried after a backoff: still pending
+    assert store.pending_tasks() == 2
+    store.cancel(job.id)
+    assert store.pending_tasks() == 0
 
 
 def test_cancel_stops_claims_and_refuses_late_commits(store):
