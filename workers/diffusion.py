@@ -266,9 +266,11 @@ def burley_reduced_albedo(total_rd):
 
         alpha' = 1 - (4.09712 + 4.20863 A - sqrt(9.59217 + 41.6808 A + 17.7126 A^2))^2,
 
-    as printed (fitted to Monte Carlo of isotropic scattering; renderers apply it to the
-    reduced albedo alpha' for g != 0). Maps [0, 1] onto [0, 1] monotonically (0 -> 0, 1 -> 1
-    to 5 digits). Elementwise."""
+    as printed. It fits the total reflectance under *diffuse* illumination of an *index-matched*
+    half space of *isotropic* scatterers: within 2.5e-3 of the exact value from Chandrasekhar's
+    H-function (tests/workers/test_diffusion.py); renderers apply it at any eta and to the
+    reduced albedo alpha' for g != 0. Maps [0, 1] onto [0, 1] monotonically (0 -> 0, 1 -> 1 to 5
+    digits). Elementwise."""
     a = np.asarray(total_rd, dtype=np.float64)
     k = 4.09712 + 4.20863 * a - np.sqrt(9.59217 + 41.6808 * a + 17.7126 * a * a)
     return 1.0 - k * k

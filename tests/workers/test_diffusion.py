@@ -10,6 +10,7 @@ import pytest
 from scipy import integrate
 
 from tests.reference.fresnel import fresnel_reflectance_array
+from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
 from tests.reference.single_scattering import single_scattering_radial
 from workers.diffusion import (
     albedo_from_reduced,
@@ -162,6 +163,16 @@ def test_burley_relation_monotone_with_inverse():
     assert np.all(np.diff(alpha) > 0)
     assert alpha[0] == pytest.approx(0.0, abs=1e-5) and alpha[-1] == pytest.approx(1.0, abs=1e-5)
     np.testing.assert_allclose(burley_total_rd(alpha[1:-1]), a[1:-1], atol=1e-12)
+
+
+@pytest.mark.parametrize("albedo", [0.1, 0.3, 0.5, 0.8, 0.9, 0.95, 0.99, 0.999])
+def test_burley_relation_is_the_diffuse_albedo_of_an_index_matched_isotropic_half_space(albedo):
+    """What the fit fits: int_0^1 R(albedo, mu0) 2 mu0 dmu0, R the exact reflectance of an
+    index-matched isotropic half space (Chandrasekhar's H-function, tests/reference)."""
+    mu, w = np.polynomial.legendre.leggauss(24)
+    mu, w = 0.5 * (mu + 1), 0.5 * w
+    diffuse = sum(2 * m * wi * diffuse_reflectance_isotropic_matched(albedo, m) for m, wi in zip(mu, w))
+    assert float(burley_total_rd(albedo)) == pytest.approx(diffuse, abs=2.5e-3)
 
 
 def test_reduced_albedo_round_trip():

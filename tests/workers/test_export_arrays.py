@@ -18,17 +18,6 @@ from workers.exports import MANIFEST, write_export
 from workers.exports.arrays import read_csv, read_npz
 from workers.exports.grid import table_grid
 from workers.exports.source import ExportSource
-from workers.output import write_tables
-from workers.simulate import simulate
-
-SPEC = {
-    "name": "arrays", "medium": {"sigma_a": [0.2, 0.05], "sigma_s": [1.8, 0.95], "g": [0.0, 0.7], "eta": 1.4,
-                                 "channel_names": ["R", "G"]},
-    "incidence_deg": [0, 45], "photons": 400, "shards": 2, "batches_per_shard": 2, "seed": 9, "estimator": "both",
-    "bins": {"radial": {"count": 6, "max_mm": 3.0, "spacing": "linear"}, "theta_s": {"count": 3}, "cos_theta_o": {"count": 2},
-             "phi_o": {"count": 2}},
-}
-
 
 def _with_nan(table: pa.Table, column: str) -> pa.Table:
     """Every third value of ``column`` made NaN: the unresolved bins of the tables' contract."""
@@ -38,10 +27,9 @@ def _with_nan(table: pa.Table, column: str) -> pa.Table:
 
 
 @pytest.fixture(scope="module")
-def source(tmp_path_factory) -> ExportSource:
-    out = tmp_path_factory.mktemp("arrays")
-    write_tables(simulate(parse_spec(SPEC), threads=1), str(out))
-    src = ExportSource.from_directory(out)
+def source(arrays_source) -> ExportSource:
+    """The shared dataset with NaN standard errors in some bins (unresolved bins)."""
+    src = arrays_source
     tables = dict(src.tables, radial=_with_nan(src.tables["radial"], "Rd_r_stderr"),
                   bins=_with_nan(src.tables["bins"], "S_stderr"))
     return dataclasses.replace(src, tables=tables)

@@ -8,6 +8,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
 from scipy import integrate
@@ -129,8 +130,12 @@ def test_refusals_name_what_to_change(source):
 
     with pytest.raises(ExportError, match='"spacing": "pbrt"'):
         pbrt_tables(variant(bins={"radial": {"count": 64}}))
+    oblique = {}
+    for name, t in source.tables.items():  # the same rows relabelled as 30 degrees
+        i = t.schema.get_field_index("incidence_deg")
+        oblique[name] = t.set_column(i, t.schema.field(i), pa.array([30.0] * t.num_rows))
     with pytest.raises(ExportError, match="normal incidence"):
-        pbrt_tables(variant(incidence_deg=[30]))
+        pbrt_tables(dataclasses.replace(source, spec=parse_spec(dict(PBRT_SPEC, incidence_deg=[30])), tables=oblique))
     one = {name: t.filter(pc.equal(t["channel"], "c1")) for name, t in source.tables.items()}
     with pytest.raises(ExportError, match="at least 2 distinct albedos.*sweep"):
         pbrt_tables(dataclasses.replace(source, tables=one))

@@ -59,10 +59,10 @@ def pbrt_tables(source: ExportSource) -> list[PbrtTable]:
         raise ExportError(
             f'the pbrt export needs bins centred on pbrt\'s radius nodes: give "bins": {{"radial": {{"count": 64, '
             f'"spacing": "pbrt"}}}} in the spec; {source.label} has radial spacing {spec.bins.radial.spacing!r}')
-    if 0.0 not in spec.incidence_deg:
-        raise ExportError(f"the pbrt export needs normal incidence (0 in incidence_deg); {source.label} has "
-                          f"{spec.incidence_deg}")
     profiles = radial_profiles(source.tables["radial"])
+    angles = sorted({key[2] for key in profiles})
+    if 0.0 not in angles:
+        raise ExportError(f"the pbrt export needs normal incidence (0 in incidence_deg); {source.label} has {angles}")
     summary = summary_rows(source.tables["summary"])
     groups: dict[tuple[str, float, float], list] = {}
     for key, prof in profiles.items():
