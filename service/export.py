@@ -5,6 +5,9 @@ Without ``--api`` it uses the local job service's store and storage (the same de
 it downloads from a running ``bssrdf serve``. Either way the export is made once, stored beside
 the version with its sha256 (:mod:`service.datasets.exports`), and unpacked into DIR after every
 file is checked against its manifest. VERSION is a number or ``latest`` (the default).
+
+``bssrdf export --tables OUT --format FORMAT --out DIR`` exports the tables ``bssrdf simulate``
+wrote into OUT instead (nothing is stored; the export records their sha256 and no version).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from urllib.parse import quote
 from service.client import ApiClient, ApiError
 from service.datasets.exports import ensure_export, extract_export, read_export
 from service.store.errors import DatasetError
-from workers.exports import FORMATS, MANIFEST, ExportError
+from workers.exports import FORMATS, MANIFEST, ExportError, ExportSource, write_export
 
 __all__ = ["add_parser", "main", "parse_target"]
 
@@ -76,12 +79,26 @@ def _remote(args: argparse.Namespace, name: str, version: int | None) -> tuple[s
     return f"{manifest['dataset']} v{manifest['version']} {args.format} (sha256 {etag})", files
 
 
+def _tables(args: argparse.Namespace) -> tuple[str, list[str]]:
+    source = ExportSource.from_directory(args.tables)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    return f"{source.label} {args.format} (tables in {args.tables})", sorted(write_export(args.format, source, out))
+
+
 def main(args: argparse.Namespace) -> int:
     """Run ``bssrdf export`` with parsed arguments; returns the exit status."""
     try:
-        name, version = parse_target(args.target)
-        what, files = (_remote if args.api else _local)(args, name, version)
-    except (ValueError, ExportError, DatasetError, ApiError) as exc:  # ExportError is a ValueError
+        if getattr(args, "tables", None):
+            if args.target or args.api:
+                raise ValueError("give either NAME[@VERSION] (a stored version) or --tables DIR, not both")
+            what, files = _tables(args)
+        else:
+            if not args.target:
+                raise ValueError("give NAME[@VERSION] (a stored version) or --tables DIR (bssrdf simulate's output)")
+            name, version = parse_target(args.target)
+            what, files = (_remote if args.api else _local)(args, name, version)
+    except (ValueError, OSError, ExportError, DatasetError, ApiError) as exc:  # ExportError is a ValueError
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {len(files)} files of {what} to {args.out}:")
@@ -96,7 +113,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                               description="Write a dataset version's export into DIR: made once, stored beside the "
                               "version with its sha256, every file checked against its manifest. Formats: "
                               + ", ".join(FORMATS) + ". Without --api: the local store (as bssrdf run).")
-    p.add_argument("target", metavar="NAME[@VERSION]", help="dataset name, optionally @VERSION (number or latest)")
+    p.add_argument("target", metavar="NAME[@VERSION]", nargs="?",
+                   help="dataset name, optionally @VERSION (number or latest)")
+    p.add_argument("--tables", metavar="OUT", default=None,
+                   help="export the tables `bssrdf simulate --out OUT` wrote instead of a stored version")
     p.add_argument("--format", required=True, choices=list(FORMATS), help="export format")
     p.add_argument("--out", required=True, help="directory to write the export's files into (created)")
     p.add_argument("--api", default=None, help="download from this API (e.g. http://127.0.0.1:8000) instead of the "

@@ -130,3 +130,17 @@ def test_command_line_errors(data_dir, tmp_path, capsys):
         with pytest.raises(ValueError, match="VERSION"):
             parse_target(bad)
     assert parse_target("tiny@latest") == ("tiny", None) and parse_target("a@12") == ("a", 12)
+
+
+def test_command_line_exports_simulate_tables(data_dir, tmp_path, capsys):
+    """--tables DIR exports tables outside the catalog (a version's directory here), writing the
+    same files as the stored export apart from the provenance's missing version."""
+    args = _args(tmp_path, None, "csv", tables=str(data_dir / "data" / "tiny" / "v1"))
+    assert export_main(args) == 0
+    out = tmp_path / "out"
+    assert sorted(p.name for p in out.iterdir()) == ["bins.csv", "columns.csv", "export.json", "provenance.json",
+                                                     "radial.csv", "summary.csv"]
+    manifest = json.loads((out / "export.json").read_text())
+    assert manifest["dataset"] == "tiny" and manifest["version"] is None and manifest["format"] == "csv"
+    both = _args(tmp_path, "tiny", "csv", tables=str(out))
+    assert export_main(both) == 2 and "not both" in capsys.readouterr().err

@@ -9,7 +9,8 @@
   the bins' centres (geometric for r > 0, half the first edge for the first bin).
 * ``s-EST-gG-etaE-incI``: S over the outgoing hemisphere (projected: radius sin theta_o, angle
   phi_o from the outward radial direction) at four radii, for the total component, one row per
-  series; at oblique incidence for the theta_s bin holding +x (the incidence plane, forward).
+  series; at oblique incidence for the theta_s bin holding +x (the incidence plane, forward);
+  not drawn when the bins have a single outgoing direction bin.
 * ``albedo-map-EST-gG-etaE`` (datasets with two or more albedos at a (g, eta), e.g. sweeps):
   the albedo map of :mod:`.albedo_map` with the dipole's and Christensen-Burley's relations,
   and their error per albedo against the measurement's error bars.
@@ -25,6 +26,7 @@ import matplotlib
 import numpy as np
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 from workers.diffusion import dipole_rd, pbd_multiple, pbd_rd, pbd_single
 
@@ -94,7 +96,7 @@ def _rd_figure(source, radial, summary, e, i, series, title) -> Figure:
                 _models(ax, source, radial, summary, (e, m, i, c), comp, r[ok & (r > 0)], colour)
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("r [mm]" + (" (= r sigma_t: sweep media have sigma_t = 1/mm)" if source.spec.is_sweep else ""))
+        ax.set_xlabel("r [mm]" if not source.spec.is_sweep else "r [mm] = r sigma_t")
         ax.set_title(comp)
         ax.grid(True, which="major", alpha=0.3)
     values = np.concatenate(shown) if shown else np.array([])
@@ -103,8 +105,11 @@ def _rd_figure(source, radial, summary, e, i, series, title) -> Figure:
         axes[0].set_ylim(max(values.min() / 3, top * 1e-12), top)
     axes[0].set_ylabel("Rd(r) [1/mm^2] per unit incident power")
     handles, labels = axes[2].get_legend_handles_labels()
+    if inc == 0.0:  # the models' line styles, in black (each series draws them in its colour)
+        handles += [Line2D([], [], ls="--", color="k", lw=0.9), Line2D([], [], ls=":", color="k", lw=1.1)]
+        labels += ["photon beam diffusion", "classical dipole"]
     fig.legend(handles, labels, loc="outside right upper", fontsize=7)
-    fig.suptitle(title)
+    fig.suptitle(title + ("  (sweep media have sigma_t = 1/mm: radii are optical)" if source.spec.is_sweep else ""))
     return fig
 
 
@@ -119,10 +124,9 @@ def _models(ax, source, radial, summary, index, comp, r, colour) -> None:
     xs = np.geomspace(r.min(), r.max(), 160)
     sa, ss, g, eta = ch.sigma_a, ch.sigma_s, ch.g, float(radial.eta[m])
     pbd = {"single": pbd_single, "multiple": pbd_multiple, "total": pbd_rd}[comp](xs, sa, ss, g, eta)
-    ax.plot(xs, entered * pbd, "--", color=colour, lw=0.9, label="photon beam diffusion" if c == m == 0 else None)
+    ax.plot(xs, entered * pbd, "--", color=colour, lw=0.9)
     if comp != "single" and ch.sigma_s_reduced > 0:
-        ax.plot(xs, entered * dipole_rd(xs, sa, ch.sigma_s_reduced, eta), ":", color=colour, lw=1.1,
-                label="classical dipole" if c == m == 0 else None)
+        ax.plot(xs, entered * dipole_rd(xs, sa, ch.sigma_s_reduced, eta), ":", color=colour, lw=1.1)
 
 
 def _s_figure(source, bins, e, i, series, title) -> Figure:
@@ -151,7 +155,8 @@ def _s_figure(source, bins, e, i, series, title) -> Figure:
             ax.set_yticklabels([])
             ax.set_xticks(np.deg2rad([0, 90, 180, 270]), ["out", "90", "in", "270"], fontsize=7)
         fig.colorbar(mesh, ax=axes[row, -1], label=f"S [1/(mm^2 sr)]\n{_label(source, bins, m, c)}", shrink=0.8)
-    fig.suptitle(title + "\nprojected outgoing hemisphere: radius sin(theta_o), angle phi_o from the outward radial direction")
+    fig.suptitle(title + "\nprojected outgoing hemisphere: radius sin(theta_o), angle phi_o from the outward radial "
+                 "direction; white: no events")
     return fig
 
 
@@ -168,7 +173,8 @@ def write_plots(source: ExportSource, out_dir: str | Path) -> list[str]:
                 tag = f"{est}-g{g:+.4f}-eta{eta:.4f}-inc{inc:g}"
                 title = f"{source.label}: {est}, g = {g:g}, eta = {eta:g}, theta_i = {inc:g} deg"
                 names += _save(_rd_figure(source, radial, summary, e, i, series, title), out, f"rd-{tag}")
-                names += _save(_s_figure(source, bins, e, i, series, title), out, f"s-{tag}")
+                if bins.values["S"].shape[7] * bins.values["S"].shape[8] > 1:  # one direction bin: nothing to show
+                    names += _save(_s_figure(source, bins, e, i, series, title), out, f"s-{tag}")
     try:
         maps = albedo_maps(source)
     except ExportError:
