@@ -3,7 +3,8 @@
 A row is inserted after its archive is in storage beside the version
 (:mod:`service.datasets.exports`); the unique (version, format) constraint makes the first
 writer win when two processes make the same export at once, and the loser reads the winner's
-row. Rows go with their version (ON DELETE CASCADE).
+row. A deleted version (a tombstone) has no exports: its directory, archives included, is
+removed, and its rows are no longer listed; they go with the row itself (ON DELETE CASCADE).
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ class ExportsMixin(StoreBase):
     def _exports_query(self, name: str, version: int):
         return (sa.select(*_COLUMNS).select_from(dataset_exports.join(dataset_versions,
                                                                       dataset_versions.c.id == dataset_exports.c.version_id))
-                .where(dataset_versions.c.name == name, dataset_versions.c.version == int(version)))
+                .where(dataset_versions.c.name == name, dataset_versions.c.version == int(version),
+                       dataset_versions.c.deleted_at.is_(None)))  # a deleted version's exports went with its files
 
     def get_export(self, name: str, version: int, fmt: str) -> ExportRecord | None:
         """The stored export of version ``version`` of ``name`` in format ``fmt``, or None."""

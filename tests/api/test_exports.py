@@ -22,7 +22,7 @@ from service.export import parse_target
 from service.settings import sqlite_url_for
 from service.store import JobStore
 from service.worker import Worker
-from tests.api.conftest import TINY_SPEC
+from tests.api.conftest import AUTH, TINY_SPEC
 
 
 @pytest.fixture(scope="module")
@@ -144,3 +144,18 @@ def test_command_line_exports_simulate_tables(data_dir, tmp_path, capsys):
     assert manifest["dataset"] == "tiny" and manifest["version"] is None and manifest["format"] == "csv"
     both = _args(tmp_path, "tiny", "csv", tables=str(out))
     assert export_main(both) == 2 and "not both" in capsys.readouterr().err
+
+
+def test_a_deleted_versions_exports_go_with_it(make_client, tmp_path):
+    """DELETE of a version removes its directory, archives included; its exports are gone (410)."""
+    root = tmp_path / "del"
+    store = JobStore(sqlite_url_for(root))
+    storage = DatasetStorage(str(root / "data"))
+    store.submit(parse_spec(TINY_SPEC))
+    Worker(store, storage, once=True, poll_seconds=0.05).loop()
+    client = make_client(store, storage)
+    assert client.get("/v1/datasets/tiny/versions/1/exports/csv").status_code == 200
+    assert client.delete("/v1/datasets/tiny/versions/1", headers=AUTH).status_code in (200, 204)
+    assert not (root / "data" / "tiny" / "v1").exists() and store.list_exports("tiny", 1) == []
+    assert client.get("/v1/datasets/tiny/versions/1/exports/csv").status_code in (404, 410)
+    store.dispose()
