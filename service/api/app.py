@@ -6,7 +6,8 @@
 
 Routers: ``/v1/jobs``, ``/v1/datasets``, ``/v1/version``, and the unversioned ``/healthz``,
 ``/readyz``, ``/metrics``. Request bodies over ``BSSRDF_MAX_BODY_BYTES`` are refused (413) before
-they are read whole (:class:`service.api.limits.BodyLimit`). The interactive OpenAPI documentation is at ``/docs``.
+they are read whole (:class:`service.api.limits.BodyLimit`). The interactive OpenAPI documentation is at ``/docs``;
+the document (``/openapi.json``) is corrected to the API's behaviour by :mod:`service.api.openapi`.
 """
 
 from __future__ import annotations
@@ -20,11 +21,13 @@ from service.api.deps import Resources
 from service.api.errors import install_error_handlers
 from service.api.limits import BodyLimit
 from service.api.models import API_VERSION
+from service.api.openapi import install_openapi
 from service.api.routers import datasets, health, jobs
 from service.settings import Settings, get_settings
 
-__all__ = ["create_app", "is_loopback", "check_auth_config", "InsecureBindError"]
+__all__ = ["create_app", "is_loopback", "check_auth_config", "InsecureBindError", "ROUTERS"]
 
+ROUTERS = (jobs.router, datasets.router, health.router)
 
 
 class InsecureBindError(RuntimeError):
@@ -83,7 +86,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.dependency_overrides[get_settings] = lambda: settings
     install_error_handlers(app)
     app.add_middleware(BodyLimit, max_bytes=effective.max_body_bytes)
-    app.include_router(jobs.router)
-    app.include_router(datasets.router)
-    app.include_router(health.router)
+    for router in ROUTERS:
+        app.include_router(router)
+    # The API's routes, for the 405 answer's Allow header and the OpenAPI fixes.
+    app.state.api_routes = [r for router in ROUTERS for r in router.routes]
+    install_openapi(app, read_open=effective.read_open)
     return app

@@ -10,6 +10,9 @@ Every error is JSON ``{"detail": ...}``:
 Exceptions mapped here (store errors not caught by a route):
 
     RequestValidationError        -> 422 (problems; a body that is not JSON is field ``body``)
+    HTTPException 405             -> 405 whose ``Allow`` lists the methods of every route of the path
+    HTTPException 400 from a body
+    that is not text (not UTF-8)  -> 422 on the field ``body``, like any other body that is not JSON
     JobNotFound, VersionNotFound  -> 404
     VersionDeleted                -> 410 (the tombstone: who deleted it, the spec hash)
     JobNotActive, JobPublished    -> 409
@@ -28,8 +31,11 @@ import math
 from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 from sqlalchemy.exc import InterfaceError, OperationalError
 
 from service.api.models import ErrorMessage, ValidationErrorBody
@@ -37,7 +43,8 @@ from service.store import (
     ChecksumMismatch, IdempotencyConflict, JobNotActive, JobNotFound, JobPublished, VersionDeleted, VersionNotFound,
 )
 
-__all__ = ["problems_from_errors", "problem", "shorten", "install_error_handlers", "ERROR_RESPONSES", "error_responses"]
+__all__ = ["problems_from_errors", "problem", "shorten", "install_error_handlers", "allowed_methods", "ERROR_RESPONSES",
+           "error_responses"]
 
 # Where a pydantic error's context names the bound: the key and how to show it.
 _BOUNDS = (("gt", "> {}"), ("ge", ">= {}"), ("lt", "< {}"), ("le", "<= {}"),
@@ -146,8 +153,33 @@ def _detail(status: int, message: str, headers: dict[str, str] | None = None) ->
     return JSONResponse({"detail": message}, status_code=status, headers=headers)
 
 
+def allowed_methods(request: Request) -> list[str]:
+    """Methods of every route whose path matches the request's (a path served by several
+    routes, such as GET and DELETE of a version, lists them all)."""
+    methods: set[str] = set()
+    for route in request.app.state.api_routes:
+        match, _ = route.matches(request.scope)
+        if match != Match.NONE:
+            methods |= set(route.methods)
+    return sorted(methods)
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers listed in the module docstring."""
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        if exc.status_code == 400 and isinstance(exc.__cause__, UnicodeDecodeError):
+            # FastAPI's answer to a body json.loads cannot decode: "There was an error parsing the body".
+            bad = exc.__cause__
+            return JSONResponse({"detail": [problem(
+                "body", f"the request body is not valid JSON: it is not UTF-8 text (byte {bad.object[bad.start]:#04x} "
+                f"at position {bad.start})", "a JSON object (UTF-8)", None)]}, status_code=422)
+        if exc.status_code != 405:
+            return await http_exception_handler(request, exc)
+        allow = allowed_methods(request)
+        return _detail(405, f"method {shorten(request.method)} is not allowed on this path; use one of "
+                            f"{', '.join(allow)}", headers={"Allow": ", ".join(allow)})
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_request: Request, exc: RequestValidationError) -> JSONResponse:

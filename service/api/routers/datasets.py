@@ -89,7 +89,7 @@ def list_versions(_token: ReadAuthDep, name: NamePath, store: StoreDep,
 
 
 @router.get("/{name}/versions/{version}", summary="Read a version: metadata and summary",
-            response_model=DatasetVersionDetail, responses=error_responses(401, 404, 422, 503))
+            response_model=DatasetVersionDetail, responses=error_responses(401, 404, 410, 422, 503))
 def get_version(_token: ReadAuthDep, name: NamePath, version: VersionPath, store: StoreDep) -> DatasetVersionDetail:
     """The version's metadata (spec, seed, photons, shards, code version, timings, checksums) and
     its summary (Rd per estimator, incidence angle, channel and component, with standard errors)."""
@@ -101,7 +101,7 @@ def get_version(_token: ReadAuthDep, name: NamePath, version: VersionPath, store
     methods=["GET", "HEAD"],
     summary="Download a file of a version",
     response_class=StreamingResponse,
-    responses={**DOWNLOAD_RESPONSES, **error_responses(401, 404, 422, 500, 503)},
+    responses={**DOWNLOAD_RESPONSES, **error_responses(401, 404, 410, 422, 500, 503)},
 )
 def download_file(_token: ReadAuthDep, request: Request, name: NamePath, version: VersionPath, store: StoreDep,
                   storage: StorageDep,
@@ -130,7 +130,7 @@ def _format_problem(fmt: str, message: str) -> RequestValidationError:
     methods=["GET", "HEAD"],
     summary="Download an export of a version (made once, then stored beside it)",
     response_class=StreamingResponse,
-    responses={**DOWNLOAD_RESPONSES, **error_responses(401, 404, 422, 500, 501, 503)},
+    responses={**DOWNLOAD_RESPONSES, **error_responses(401, 404, 410, 422, 500, 501, 503)},
 )
 def download_export(_token: ReadAuthDep, request: Request, name: NamePath, version: VersionPath, store: StoreDep,
                     storage: StorageDep,
