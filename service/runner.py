@@ -79,8 +79,13 @@ def format_progress(p) -> str:
     eta = "-" if p.eta_s is None else f"{p.eta_s:.0f}s"
     stalled = getattr(p, "shards_stalled", 0)
     running = f"running {p.shards_running}" + (f", stalled {stalled}" if stalled else "")
-    return (f"{p.state:<9} shards {p.shards_done}/{p.shards_total} ({running}) "
-            f"photons {_si(p.photons_done)}  {_si(p.rate_photons_per_s)}/s  ETA {eta}  merge {p.merge_state}")
+    media = getattr(p, "media_total", 1)
+    merged = (f"merged {getattr(p, 'tasks_folded', 0)}/{p.shards_total}"
+              + (f" (media {getattr(p, 'media_merged', 0)}/{media})" if media > 1 else ""))
+    skipped = getattr(p, "shards_skipped", 0)
+    return (f"{p.state:<9} shards {p.shards_done}/{p.shards_total} ({running}"
+            + (f", skipped {skipped}" if skipped else "") + ") "
+            f"photons {_si(p.photons_done)}  {_si(p.rate_photons_per_s)}/s  ETA {eta}  merge {p.merge_state}, {merged}")
 
 
 def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,
@@ -184,6 +189,12 @@ def main(args: argparse.Namespace) -> int:
         spec = load_spec(args.spec)
     except (SpecError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    from schema.sizes import size_limit_problems
+
+    too_big = size_limit_problems(spec, settings.max_shard_bytes, settings.max_dataset_bytes)
+    if too_big:  # refused before anything is stored, as the API refuses it
+        print("error: " + "\n  ".join(f"{field}: {message}" for field, message, _, _ in too_big), file=sys.stderr)
         return 2
     data_dir.mkdir(parents=True, exist_ok=True)
     try:

@@ -14,6 +14,12 @@ see deploy/README.md, "Limits")::
     BSSRDF_MAX_SHARD_CPU_SECONDS=1200        estimated CPU seconds of one shard (schema.estimate)
     BSSRDF_WORKER_SPEED=1.0                  the fleet's speed relative to BENCHMARKS.md's machine
     BSSRDF_MAX_BODY_BYTES=1048576            request body (413 before it is parsed)
+    BSSRDF_MAX_SHARD_BYTES=2000000000        estimated shard tally before compression (schema.sizes)
+    BSSRDF_MAX_DATASET_BYTES=100000000000    estimated dataset tables before compression
+
+Shard results (files in dataset storage under .jobs/<job id>/, removed once the version is
+published unless BSSRDF_KEEP_SHARD_FILES=true); BSSRDF_FOLD_BATCH=8: the merge folds shards in
+task order as they arrive, once that many in a row are done.
 
 Defaults are the one-machine setup: an SQLite job store and a local data directory under
 ``./.bssrdf``. Use :func:`get_settings` (cached) rather than constructing :class:`Settings`
@@ -74,6 +80,18 @@ class Settings(BaseSettings):
         1.0, gt=0, description="Speed of the fleet's cores relative to the BENCHMARKS.md machine the CPU "
         "estimate is calibrated on (2.0: twice as fast).")
     max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body; larger ones get 413.")
+    max_shard_bytes: int = Field(
+        2_000_000_000, ge=1, description="Most estimated bytes of one shard's tally before compression "
+        "(schema.sizes); the merge holds one shard and one accumulator of that size.")
+    max_dataset_bytes: int = Field(
+        100_000_000_000, ge=1, description="Most estimated bytes of a dataset version's tables before "
+        "compression (schema.sizes).")
+    keep_shard_files: bool = Field(
+        False, description="Keep a job's shard results, fold and parts (storage .jobs/<job id>/) after its "
+        "version is published (default: removed).")
+    fold_batch: int = Field(
+        8, ge=1, description="Shards the merge waits for before folding (the next ones in task order): each "
+        "fold round rewrites the accumulator once, so 8 costs 1/8 of the shards' I/O.")
 
     @field_validator("api_tokens", mode="before")
     @classmethod

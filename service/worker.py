@@ -28,7 +28,7 @@ import uuid
 from sqlalchemy.exc import DBAPIError
 
 from schema import SimulationSpec, parse_spec
-from service.datasets import DatasetStorage, run_merge_task
+from service.datasets import DatasetStorage, JobFiles, run_merge_task
 from service.settings import settings_or_exit
 from service.store import JobNotFound, JobStore, Lease, LeaseLost, TaskKind
 
@@ -95,9 +95,10 @@ class Worker:
     def __init__(
         self, store: JobStore, storage: DatasetStorage, *, worker_id: str | None = None, lease_seconds: float = 60.0,
         heartbeat_seconds: float | None = None, once: bool = False, max_tasks: int | None = None,
-        poll_seconds: float = 1.0, stall_seconds: float | None = 300.0,
+        poll_seconds: float = 1.0, stall_seconds: float | None = 300.0, keep_shard_files: bool = False,
     ) -> None:
         self.store, self.storage = store, storage
+        self.keep_shard_files = keep_shard_files
         self.worker_id = worker_id or f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
         self.lease_seconds = lease_seconds
         self.heartbeat_seconds = heartbeat_seconds or lease_seconds / 4
@@ -193,9 +194,11 @@ class Worker:
 
     def _process_shard(self, lease: Lease, beat: _Heartbeat, photons: list[int], last_progress: list,
                        fields: dict) -> None:
-        # Deferred, not a cycle: workers.shard imports torch (seconds), and building the `bssrdf`
+        """Run task ``lease.shard_index`` (shard s of medium m, schema.media), write its tally as
+        a file in the job's staging area, and commit the file's URI, size and sha256."""
+        # Deferred, not a cycle: workers.sweep imports torch (seconds), and building the `bssrdf`
         # parser imports this module; only a process that runs a shard pays for it.
-        from workers.shard import run_shard
+        from workers.sweep import run_task
 
         def progress(n: int) -> None:
             photons[0] += int(n)
@@ -205,20 +208,30 @@ class Worker:
             if self.stopping.is_set():
                 raise _Abandon("stopping")
 
-        tally = run_shard(self._spec(lease), lease.shard_index, progress=progress)
+        tally = run_task(self._spec(lease), lease.shard_index, progress=progress)
         if beat.lost.is_set():
             raise _Abandon("lease lost")
-        payload = tally.to_bytes()
-        self.store.complete_shard(lease, payload, photons=tally.photons, elapsed_s=tally.elapsed_s)
+        files = JobFiles(self.storage, lease.job_id)
+        # One file per attempt (named by the lease token): a stale worker never overwrites the
+        # file a commit recorded.
+        ref = files.write(f"shards/{lease.shard_index:08d}-{lease.token}.tally", tally.to_bytes())
+        try:
+            self.store.complete_shard(lease, ref, photons=tally.photons, elapsed_s=tally.elapsed_s)
+        except BaseException:
+            files.delete(ref)  # not recorded: nobody will read it
+            raise
         log.info("shard done", extra={**fields, "photons": tally.photons, "elapsed_s": round(tally.elapsed_s, 3),
-                                      "payload_bytes": len(payload)})
+                                      "payload_bytes": ref.bytes})
 
     def _process_merge(self, lease: Lease, beat: _Heartbeat, fields: dict) -> None:
         t0 = time.perf_counter()
-        version = run_merge_task(self.store, self.storage, lease)
+        version = run_merge_task(self.store, self.storage, lease, keep_files=self.keep_shard_files)
+        elapsed = round(time.perf_counter() - t0, 3)
+        if version is None:
+            log.info("fold advanced", extra={**fields, "elapsed_s": elapsed})
+            return
         spec = self._spec(lease)
-        log.info("dataset published", extra={**fields, "dataset": spec.name, "version": version,
-                                             "elapsed_s": round(time.perf_counter() - t0, 3)})
+        log.info("dataset published", extra={**fields, "dataset": spec.name, "version": version, "elapsed_s": elapsed})
 
 
 # --- logging ---
@@ -291,12 +304,13 @@ def main(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     lease_seconds = args.lease_seconds or settings.lease_seconds
     heartbeat = args.heartbeat_seconds or (settings.heartbeat_seconds if not args.lease_seconds else None)
-    store = JobStore(args.db or settings.database_url)
+    store = JobStore(args.db or settings.database_url, fold_batch=settings.fold_batch)
     storage = DatasetStorage(args.storage or settings.storage_uri)
     worker = Worker(
         store, storage, worker_id=args.worker_id, lease_seconds=lease_seconds, heartbeat_seconds=heartbeat,
         once=args.once, max_tasks=args.max_tasks, poll_seconds=args.poll_seconds,
         stall_seconds=args.stall_seconds or settings.stall_seconds,
+        keep_shard_files=settings.keep_shard_files,
     )
     try:
         return worker.run()

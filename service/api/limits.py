@@ -5,7 +5,9 @@
                          before any of it is parsed
     spec_limit_problems  the 422 problems of a spec beyond ``max_job_photons`` or whose estimated
                          shard CPU time (:func:`schema.estimate.estimate_shard`) is beyond
-                         ``max_shard_cpu_seconds``; each names the field, the limit and the value
+                         ``max_shard_cpu_seconds``, or whose estimated shard payload or dataset size
+                         (:func:`schema.sizes.size_limit_problems`) is beyond ``max_shard_bytes`` /
+                         ``max_dataset_bytes``; each names the field, the limit and the value
 
 Every limit is a setting (``service/settings.py``) documented in deploy/README.md, "Limits".
 """
@@ -18,6 +20,7 @@ from typing import Any
 
 from schema import SimulationSpec
 from schema.estimate import estimate_shard, job_photons
+from schema.sizes import size_limit_problems
 from service.api.errors import problem
 from service.settings import Settings
 
@@ -105,4 +108,6 @@ def spec_limit_problems(spec: SimulationSpec, settings: Settings) -> list[dict[s
             f"{settings.max_shard_cpu_seconds:g} s (BSSRDF_MAX_SHARD_CPU_SECONDS); use at least {needed} "
             "shards, or fewer photons or bins",
             allowed=f"estimated CPU seconds per shard <= {settings.max_shard_cpu_seconds:g}", received=spec.shards))
+    out += [problem(field, message, allowed=allowed, received=received) for field, message, allowed, received in
+            size_limit_problems(spec, settings.max_shard_bytes, settings.max_dataset_bytes)]
     return out

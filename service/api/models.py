@@ -73,6 +73,11 @@ class JobProgressPublic(BaseModel):
     photons_total: int | None = Field(description="Photons of the whole job (photons x angles x channels x media).")
     elapsed_s: float = Field(description="Seconds since the first claim (0 before).")
     rate_photons_per_s: float | None
+    shards_skipped: int = Field(0, description="Not counted: their medium met its target error with fewer shards.")
+    tasks_folded: int = Field(0, description="Shard tasks the merge has folded so far, in task order.")
+    media_total: int = Field(1, description="Media of the job (the sweep's grid; 1 for a single medium); "
+                             "shards_total = media_total x the spec's shards.")
+    media_merged: int = Field(0, description="Media the merge is past: their tables are final.")
     eta_s: float | None = Field(description="Seconds left at the current rate: None before the first photons are "
                                 "reported and once the job failed or was cancelled; 0 once it succeeded.")
 

@@ -5,10 +5,12 @@
     v.read_table("radial.parquet")
 
 Modules: :mod:`.storage` (layout, staging, atomic publish, verified reads), :mod:`.metadata`
-(metadata.json, code version), :mod:`.publish` (the merge task run by workers), :mod:`.exports`
+(metadata.json, code version), :mod:`.jobfiles` (a job's staging area: shard results, folds,
+parts), :mod:`.publish` (the merge task run by workers: an incremental fold), :mod:`.exports`
 (exports made once and stored beside a version; imported by name, it pulls in workers.exports).
 """
 
+from service.datasets.jobfiles import JobFiles
 from service.datasets.metadata import build_metadata
 from service.datasets.publish import IncompleteShards, run_merge_task
 from service.datasets.storage import (
@@ -18,6 +20,7 @@ from service.datasets.storage import (
     StagedVersion,
     expected_files,
     open_version,
+    verified_bytes,
     verified_path,
     sha256_file,
 )
@@ -29,7 +32,9 @@ __all__ = [
     "open_version",
     "expected_files",
     "verified_path",
+    "verified_bytes",
     "sha256_file",
+    "JobFiles",
     "METADATA_FILE",
     "run_merge_task",
     "IncompleteShards",

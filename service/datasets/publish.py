@@ -1,4 +1,22 @@
-"""The merge task: shard results -> merged tables -> a published dataset version."""
+"""The merge task: an incremental fold of the shard results in task order, then the version.
+
+Each claim of a job's merge task is one *round* (:func:`run_merge_task`):
+
+1. restore the fold the job store records (``jobs.folded``, ``fold_uri``: a
+   :class:`workers.sweep.JobFold` saved as a file in the job's staging area, sha256 checked),
+   or start one;
+2. fold the done tasks from there on, in task order, each shard file read once and checked
+   against its recorded sha256, into one float64 accumulator per medium (memory: the
+   accumulator and one shard, whatever the shard count); a finished medium of a sweep is
+   written as a part (its three tables) beside the shards; a medium that met its target error
+   ends early, and the round commits at once so that its remaining tasks stop being claimed;
+3. if tasks remain: save the fold, commit cursor and file fenced by the lease
+   (``store.advance_fold``), and wait for the next shards; a killed round leaves the last
+   committed fold in place, and the next claim starts from it;
+4. once every medium is folded: write the tables into a staging directory (a sweep's parts
+   streamed in medium order), ``metadata.json``, and publish with ``store.complete_merge``;
+   then remove the job's files (shards, folds, parts) unless ``keep_files``.
+"""
 
 from __future__ import annotations
 
@@ -6,66 +24,143 @@ import hashlib
 import json
 import time
 
+import pyarrow as pa
+import pyarrow.parquet as pq
+
 from schema import parse_spec
+from service.datasets.jobfiles import JobFiles
 from service.datasets.metadata import build_metadata, metadata_bytes
 from service.datasets.storage import METADATA_FILE, DatasetStorage
-from service.store import JobStore, Lease, StoreError
+from service.store import JobStore, Lease, StoredFile, StoreError
 
 __all__ = ["run_merge_task", "IncompleteShards"]
 
 
 class IncompleteShards(StoreError):
-    """The stored shard results are not exactly shards 0..N-1 (a bug: the merge is gated on them)."""
+    """The stored fold does not match the job row's cursor (a bug: they are committed together)."""
 
 
-def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease) -> int:
-    """Merge every shard of the leased job in shard order and publish the next version.
-
-    Steps: load the shard payloads (shard order), ``merge``, ``write_tables`` into a staging
-    directory, write ``metadata.json`` (spec, seed, photons, shard count, code version, timings,
-    summary, sha256 of every file), then ``store.complete_merge`` moves the directory to
-    ``NAME/vN`` and commits the catalog row with the job's success. Staged files are deleted if
-    anything fails, a lost lease included. Returns the version number.
-    """
-    # Deferred, not a cycle: the merge imports torch (seconds), which the API process, importing
+def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, keep_files: bool = False) -> int | None:
+    """One round of the leased job's merge (module docstring); the version number if it
+    published one, else None (the fold advanced and waits for more shards)."""
+    # Deferred, not a cycle: the fold imports torch (seconds), which the API process, importing
     # this package for dataset reads, never needs.
-    from workers.merge import merge
-    from workers.output import summary, write_tables
+    from workers.sweep import JobFold, target_rule
     from workers.tally import ShardTally
 
     t0 = time.perf_counter()
     spec = parse_spec(json.loads(lease.spec_json))
+    files = JobFiles(storage, lease.job_id)
+    pos = store.fold_position(lease.job_id)
+    rule = target_rule(spec)
+    if pos.fold is None:
+        fold, parts = JobFold(spec, rule), {}
+    else:
+        state = ShardTally.from_bytes(files.read(pos.fold, "fold"))
+        fold, parts = JobFold.from_state(spec, state, rule), dict(state.info.get("parts", {}))
+    if fold.next_task != pos.folded:
+        raise IncompleteShards(f"job {lease.job_id}: the fold file is at task {fold.next_task}, the job row at {pos.folded}")
+    skipped: list[range] = []
+    last = None
+    while not fold.done:
+        task = fold.next_task
+        stored = store.shard_result(lease.job_id, task)
+        if stored is None:
+            break
+        data = files.read(stored, f"task {task}") if isinstance(stored, StoredFile) else stored
+        result = fold.add(task, ShardTally.from_bytes(data))
+        del data
+        if result is None:
+            continue
+        if len(fold.skipped):
+            skipped.append(fold.skipped)
+        if spec.is_sweep:
+            parts[str(result.medium_index)] = _write_part(files, result)
+        last = result
+        if skipped and not fold.done:
+            break  # commit the early stop now: its medium's remaining tasks stop being claimed
+    if fold.done:
+        return _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_files)
+    ref = None
+    if fold.next_task != pos.folded or pos.fold is None:
+        state = fold.state()
+        state.info["parts"] = parts
+        ref = files.write(f"fold/{fold.next_task:08d}-{lease.token}.fold", state.to_bytes())
+    try:
+        store.advance_fold(lease, folded=fold.next_task, fold=ref or pos.fold, skipped=skipped)
+    except BaseException:
+        if ref is not None:
+            files.delete(ref)
+        raise
+    if ref is not None:
+        files.delete(pos.fold)  # the previous fold: nothing points to it any more
+    return None
+
+
+def _write_part(files: JobFiles, result) -> dict[str, dict]:
+    """A finished medium's tables as a part of the job; their recorded uri, size and sha256."""
+    from workers.sweep import PART_FILES, write_part
+
+    directory = files.part_dir(result.medium_index)
+    write_part(result, directory, files.fs)
+    out = {}
+    for name in PART_FILES:
+        with files.fs.open_input_stream(f"{directory}/{name}") as f:
+            data = f.read()
+        out[name] = {"uri": files.part_uri(result.medium_index, name), "bytes": len(data),
+                     "sha256": hashlib.sha256(data).hexdigest()}
+    return out
+
+
+def _read_parts(files: JobFiles, parts: dict, media: int):
+    """Each medium's (radial, bins, summary) tables in medium order, sha256 checked, one at a time."""
+    from workers.sweep import PART_FILES
+
+    for m in range(media):
+        refs = parts[str(m)]
+        yield tuple(pq.read_table(pa.BufferReader(files.read(StoredFile(**refs[name]), f"medium {m} {name}")))
+                    for name in PART_FILES)
+
+
+def _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_files) -> int:
+    """Write the job's tables and metadata into a staging directory and publish the version."""
+    from workers.output import summary, summary_head, write_tables
+    from workers.sweep import sweep_run_facts, write_sweep_tables
+
     job = store.get_job(lease.job_id)
-    payloads = store.load_shard_results(lease.job_id)
-    if [i for i, _ in payloads] != list(range(spec.shards)):
-        raise IncompleteShards(
-            f"job {lease.job_id}: stored shards {[i for i, _ in payloads]}, expected 0..{spec.shards - 1}"
-        )
-    tallies = [ShardTally.from_bytes(p) for _, p in payloads]
-    result = merge(spec, tallies)
-    t_merge = time.perf_counter()
+    t_fold = time.perf_counter()
     staged = storage.stage(spec.name)
     try:
-        files = write_tables(result, staged.path, filesystem=storage.fs)
+        if spec.is_sweep:
+            names = write_sweep_tables(spec, fold.media, _read_parts(files, parts, spec.n_media), staged.path, storage.fs)
+            doc = summary_head(spec, sweep_run_facts(spec, fold.media)) | {"results_file": "summary.json"}
+            per_shard = []  # a sweep's photons are per medium in the run facts
+        else:
+            names = write_tables(last, staged.path, filesystem=storage.fs)
+            doc = summary(last)
+            per_shard = [int(i.get("photons", 0)) for i in last.shard_info]
         t_write = time.perf_counter()
         meta = build_metadata(
             name=spec.name, job_id=lease.job_id, spec_json=lease.spec_json, spec_hash=job.spec_hash,
             seed=spec.seed, shards=spec.shards,
-            photons=int(sum(t.photons for t in tallies)),
-            photons_per_shard=[int(t.photons) for t in tallies],
+            photons=int(sum(m["photons"] for m in fold.media)),
+            photons_per_shard=per_shard,
             timings={
-                "shard_walk_s_sum": float(sum(t.elapsed_s for t in tallies)),
-                "merge_s": t_merge - t0,
-                "write_s": t_write - t_merge,
+                "shard_walk_s_sum": float(sum(m["walk_s"] for m in fold.media)),
+                "merge_s": t_fold - t0,  # the last fold round
+                "write_s": t_write - t_fold,
                 "job_wall_s": (store.now() - job.started_at) if job.started_at else None,
             },
-            summary=summary(result),
-            files=staged.checksums(list(files)),
+            summary=doc,
+            files=staged.checksums(list(names)),
         )
         blob = metadata_bytes(meta)
         staged.write_bytes(METADATA_FILE, blob)
         row_meta = dict(meta, metadata_sha256=hashlib.sha256(blob).hexdigest())
-        return store.complete_merge(lease, spec.name, row_meta, staged)
+        version = store.complete_merge(lease, spec.name, row_meta, staged)
     except BaseException:
         staged.discard()
         raise
+    if not keep_files:
+        files.discard()
+    return version

@@ -31,7 +31,10 @@ from schema.names import InvalidName, check_name
 from service.store.errors import ChecksumMismatch, DatasetError
 from service.store.records import DatasetVersionRecord
 
-__all__ = ["DatasetStorage", "StagedVersion", "OpenVersion", "open_version", "expected_files", "verified_path", "sha256_file", "METADATA_FILE"]
+__all__ = [
+    "DatasetStorage", "StagedVersion", "OpenVersion", "open_version", "expected_files", "verified_path",
+    "verified_bytes", "check_sha256", "sha256_file", "METADATA_FILE",
+]
 
 METADATA_FILE = "metadata.json"
 _CHUNK = 1 << 20
@@ -193,13 +196,31 @@ def verified_path(storage: DatasetStorage, record: DatasetVersionRecord, filenam
     """Path of a version's file after checking its sha256 against the one published
     (:class:`ChecksumMismatch` if it is missing, unreadable or different)."""
     path = f"{record.uri}/{filename}"
+    what = f"{record.name} v{record.version}: {filename}"
     try:
         actual = sha256_file(storage.fs, path)
     except (FileNotFoundError, OSError) as exc:
-        raise ChecksumMismatch(f"{record.name} v{record.version}: {filename} unreadable ({exc})") from exc
+        raise ChecksumMismatch(f"{what} unreadable ({exc})") from exc
+    check_sha256(actual, digest, what, "published", "restore it from a backup or re-run the job")
+    return path
+
+
+def verified_bytes(fs: pafs.FileSystem, path: str, digest: str, what: str) -> bytes:
+    """The content of a file the job store recorded (a shard result, a fold), read once and
+    checked against its recorded sha256 (:class:`ChecksumMismatch` if missing, unreadable or
+    different)."""
+    try:
+        with fs.open_input_stream(path) as f:
+            data = f.read()
+    except (FileNotFoundError, OSError) as exc:
+        raise ChecksumMismatch(f"{what} unreadable ({exc})") from exc
+    check_sha256(hashlib.sha256(data).hexdigest(), digest, what, "recorded", "its task must run again")
+    return data
+
+
+def check_sha256(actual: str, digest: str, what: str, recorded_as: str, remedy: str) -> None:
+    """The one checksum rule: ChecksumMismatch naming the file and both digests unless equal."""
     if actual != digest:
         raise ChecksumMismatch(
-            f"{record.name} v{record.version}: {filename} has sha256 {actual}, published as {digest}; "
-            "the stored copy is corrupt: restore it from a backup or re-run the job"
+            f"{what} has sha256 {actual}, {recorded_as} as {digest}; the stored copy is corrupt: {remedy}"
         )
-    return path

@@ -19,7 +19,8 @@ from service.store.errors import (
     VersionNotFound,
 )
 from service.store.records import (
-    DatasetRecord, DatasetVersionRecord, ExportRecord, JobProgress, JobRecord, Lease, Submission,
+    DatasetRecord, DatasetVersionRecord, ExportRecord, FoldPosition, JobProgress, JobRecord, Lease, MediumProgress,
+    StoredFile, Submission,
 )
 from service.store.retry import RetryDecision, RetryPolicy, decide_retry
 from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
@@ -31,6 +32,9 @@ __all__ = [
     "JobProgress",
     "Submission",
     "Lease",
+    "StoredFile",
+    "FoldPosition",
+    "MediumProgress",
     "DatasetRecord",
     "DatasetVersionRecord",
     "ExportRecord",

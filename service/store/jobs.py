@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import uuid
 from typing import Protocol
 
@@ -25,6 +26,8 @@ class SpecLike(Protocol):
     name: str
     shards: int
 
+    def task_count(self) -> int: ...  # shard tasks: media x shards (schema.media)
+
     def canonical_json(self) -> str: ...
 
     def spec_hash(self) -> str: ...
@@ -34,7 +37,7 @@ class JobsMixin(StoreBase):
     """Job-level operations."""
 
     def submit(self, spec: SpecLike, *, idempotency_key: str | None = None) -> JobRecord:
-        """Store a job: its shard tasks (queued) plus one merge task (waiting); the new job.
+        """Store a job: its shard tasks (queued; media x shards) plus one merge task (waiting); the new job.
 
         With an ``idempotency_key``, submitting again returns the job first stored under that key
         (raises :class:`IdempotencyConflict` if its spec differs). Without one, every submission
@@ -103,7 +106,7 @@ class JobsMixin(StoreBase):
         conn.execute(
             sa.insert(jobs).values(
                 id=job_id, name=spec.name, spec_json=spec_json, spec_hash=spec_hash,
-                shards=spec.shards, state=JobState.QUEUED, idempotency_key=idempotency_key,
+                shards=spec.task_count(), state=JobState.QUEUED, idempotency_key=idempotency_key,
                 created_at=now, updated_at=now,
                 photons_total=job_photons(spec) if isinstance(spec, SimulationSpec) else None,
             )
@@ -111,7 +114,7 @@ class JobsMixin(StoreBase):
         rows = [
             dict(job_id=job_id, kind=TaskKind.SHARD, shard_index=i, state=TaskState.QUEUED,
                  max_attempts=self.max_attempts)
-            for i in range(spec.shards)
+            for i in range(spec.task_count())  # task i = medium * shards + shard (schema.media)
         ]
         rows.append(dict(job_id=job_id, kind=TaskKind.MERGE, shard_index=None,
                          state=TaskState.WAITING, max_attempts=self.max_attempts))
@@ -199,6 +202,9 @@ class JobsMixin(StoreBase):
             ).scalar_one()
         m = job._mapping
         done, running, stalled, failed, cancelled, photons, photons_done_shards = (int(x) for x in counts)
+        skipped = int(m["shards_skipped"])
+        per_medium = int(json.loads(m["spec_json"]).get("shards") or total) or 1  # tasks = media x shards
+        cancelled -= skipped  # cancelled by an early stop (target met): counted apart
         total = int(m["shards"])
         end = m["finished_at"] if m["finished_at"] is not None else m["now"]
         elapsed = max(0.0, end - m["started_at"]) if m["started_at"] is not None else 0.0
@@ -216,9 +222,11 @@ class JobsMixin(StoreBase):
             eta = max(0.0, expected - photons) / rate
         return JobProgress(
             job_id=job_id, state=state, shards_total=total,
-            shards_queued=total - done - running - stalled - failed - cancelled, shards_running=running,
+            shards_queued=total - done - running - stalled - failed - cancelled - skipped, shards_running=running,
             shards_stalled=stalled, shards_done=done, shards_failed=failed, shards_cancelled=cancelled,
             merge_state=merge_state, photons_done=photons, photons_total=m["photons_total"], elapsed_s=elapsed,
             rate_photons_per_s=rate, eta_s=eta, error=m["error"],
             dataset_name=m["dataset_name"], dataset_version=m["dataset_version"],
+            shards_skipped=skipped, tasks_folded=int(m["folded"]), media_total=max(1, total // per_medium),
+            media_merged=int(m["folded"]) // per_medium,
         )

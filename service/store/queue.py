@@ -16,7 +16,7 @@ from sqlalchemy.exc import IntegrityError
 
 from service.store.base import StoreBase
 from service.store.errors import LeaseLost
-from service.store.records import Lease
+from service.store.records import Lease, StoredFile
 from service.store.retry import decide_retry
 from service.store.states import ACTIVE_JOB_STATES, JobState, TaskKind, TaskState
 from service.store.tables import dataset_versions, jobs, shard_results, tasks
@@ -41,55 +41,20 @@ class QueueMixin(StoreBase):
         """Lease the next claimable task, or return None.
 
         Claimable: job active, and task queued (and past its retry backoff) or leased with an
-        expired lease and attempts left. Fair order: oldest job first, then shard index, merge
-        last. One atomic ``UPDATE ... WHERE id = (SELECT ... FOR UPDATE SKIP LOCKED LIMIT 1)
+        expired lease and attempts left. Order: merge tasks first (a fold round is short and
+        keeps the merge up with the shards), then oldest job first and task index. One atomic ``UPDATE ... WHERE id = (SELECT ... FOR UPDATE SKIP LOCKED LIMIT 1)
         RETURNING`` (the lock clause renders to nothing on SQLite, where BEGIN IMMEDIATE holds the
         single write lock instead). Every claim counts as an attempt and bumps the fencing token.
         """
         if time.monotonic() >= getattr(self, "_next_reap", 0.0):
             self.reap_expired()
         now = self._now()
-        expired = sa.and_(
-            tasks.c.state == TaskState.LEASED,
-            tasks.c.lease_expires_at < now,
-            tasks.c.attempts < tasks.c.max_attempts,
-        )
-        candidate = (
-            sa.select(tasks.c.id)
-            .join(jobs, jobs.c.id == tasks.c.job_id)
-            .where(
-                jobs.c.state.in_(list(ACTIVE_JOB_STATES)),
-                sa.or_(tasks.c.state == TaskState.QUEUED, expired),
-                sa.or_(tasks.c.not_before.is_(None), tasks.c.not_before <= now),
-            )
-            .order_by(tasks.c.id)
-            .limit(1)
-            .with_for_update(skip_locked=True, of=tasks)
-            .scalar_subquery()
-        )
-        stmt = (
-            sa.update(tasks)
-            .where(tasks.c.id == candidate)
-            .values(
-                expirations=tasks.c.expirations
-                + sa.case((tasks.c.state == TaskState.LEASED, 1), else_=0),
-                state=TaskState.LEASED,
-                attempts=tasks.c.attempts + 1,
-                lease_token=tasks.c.lease_token + 1,
-                lease_owner=worker_id,
-                lease_expires_at=now + sa.literal(float(lease_seconds), sa.Float),
-                heartbeat_at=now,
-                started_at=now,
-                not_before=None,
-                photons=0,
-            )
-            .returning(
-                tasks.c.id, tasks.c.lease_token, tasks.c.job_id, tasks.c.kind, tasks.c.shard_index,
-                tasks.c.attempts, tasks.c.max_attempts, tasks.c.lease_expires_at,
-            )
-        )
         with self._tx() as conn:
-            row = conn.execute(stmt).first()
+            # Merge tasks first (few: one per live job, ix_tasks_merge_live), so that the fold keeps
+            # up with the shards as they arrive; then shards in fair order.
+            row = conn.execute(self._claim_statement(now, worker_id, lease_seconds, TaskKind.MERGE)).first()
+            if row is None:
+                row = conn.execute(self._claim_statement(now, worker_id, lease_seconds, None)).first()
             if row is not None:
                 # Lock order elsewhere is job row, then task rows; here the task is already locked,
                 # so skip a locked job row instead of waiting (no deadlock with cancel). Whoever
@@ -114,6 +79,51 @@ class QueueMixin(StoreBase):
             task_id=row.id, token=row.lease_token, job_id=row.job_id, kind=TaskKind(row.kind),
             shard_index=row.shard_index, attempts=row.attempts, max_attempts=row.max_attempts,
             lease_expires_at=row.lease_expires_at, spec_json=spec_json, owner=worker_id,
+        )
+
+    def _claim_statement(self, now, worker_id: str, lease_seconds: float, kind: TaskKind | None):
+        """The atomic claim of the first claimable task (of ``kind``, if given): see :meth:`claim`."""
+        expired = sa.and_(
+            tasks.c.state == TaskState.LEASED,
+            tasks.c.lease_expires_at < now,
+            tasks.c.attempts < tasks.c.max_attempts,
+        )
+        where = [
+            jobs.c.state.in_(list(ACTIVE_JOB_STATES)),
+            sa.or_(tasks.c.state == TaskState.QUEUED, expired),
+            sa.or_(tasks.c.not_before.is_(None), tasks.c.not_before <= now),
+        ]
+        if kind is not None:
+            where.append(tasks.c.kind == kind)
+        candidate = (
+            sa.select(tasks.c.id)
+            .join(jobs, jobs.c.id == tasks.c.job_id)
+            .where(*where)
+            .order_by(tasks.c.id)
+            .limit(1)
+            .with_for_update(skip_locked=True, of=tasks)
+            .scalar_subquery()
+        )
+        return (
+            sa.update(tasks)
+            .where(tasks.c.id == candidate)
+            .values(
+                expirations=tasks.c.expirations
+                + sa.case((tasks.c.state == TaskState.LEASED, 1), else_=0),
+                state=TaskState.LEASED,
+                attempts=tasks.c.attempts + 1,
+                lease_token=tasks.c.lease_token + 1,
+                lease_owner=worker_id,
+                lease_expires_at=now + sa.literal(float(lease_seconds), sa.Float),
+                heartbeat_at=now,
+                started_at=now,
+                not_before=None,
+                photons=0,
+            )
+            .returning(
+                tasks.c.id, tasks.c.lease_token, tasks.c.job_id, tasks.c.kind, tasks.c.shard_index,
+                tasks.c.attempts, tasks.c.max_attempts, tasks.c.lease_expires_at,
+            )
         )
 
     def _fenced(self, lease: Lease):
@@ -146,11 +156,15 @@ class QueueMixin(StoreBase):
         if done.rowcount != 1:
             raise LeaseLost(lease.task_id, lease.token, "lease expired and re-claimed, or job cancelled")
 
-    def complete_shard(self, lease: Lease, payload: bytes, *, photons: int, elapsed_s: float) -> None:
-        """Store a shard's result and mark the task done in one transaction (fenced).
+    def complete_shard(self, lease: Lease, result: StoredFile, *, photons: int, elapsed_s: float) -> None:
+        """Record a shard's result file (URI, size, sha256) and mark the task done, in one fenced
+        transaction costing O(1) whatever the job's size: the job row's ``shards_done`` counter
+        goes up by one (no count over its tasks).
 
-        When it is the job's last shard, the merge task becomes claimable and the job ``merging``.
-        Raises :class:`LeaseLost` if the token is stale; then nothing was written.
+        The merge task is queued once the next ``fold_batch`` tasks the fold needs are done (or
+        every remaining one); the job turns ``merging`` when every task is done or skipped.
+        Raises :class:`LeaseLost` if the token is stale; then nothing was written (the caller
+        removes its file).
         """
         if lease.kind != TaskKind.SHARD:
             raise ValueError(f"complete_shard needs a shard lease; received a {lease.kind} lease")
@@ -160,36 +174,41 @@ class QueueMixin(StoreBase):
             self._finish(conn, lease, photons=int(photons), elapsed_s=float(elapsed_s))
             conn.execute(
                 sa.insert(shard_results).values(
-                    job_id=lease.job_id, shard_index=lease.shard_index, payload=payload, created_at=now
+                    job_id=lease.job_id, shard_index=lease.shard_index, uri=result.uri, bytes=int(result.bytes),
+                    sha256=result.sha256, created_at=now,
                 )
             )
-            left = conn.execute(
-                sa.select(sa.func.count()).where(
-                    tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.SHARD,
-                    tasks.c.state != TaskState.DONE,
-                )
-            ).scalar_one()
-            if left == 0:
-                conn.execute(
-                    sa.update(tasks)
-                    .where(tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.MERGE,
-                           tasks.c.state == TaskState.WAITING)
-                    .values(state=TaskState.QUEUED)
-                )
-                conn.execute(
-                    sa.update(jobs).where(jobs.c.id == lease.job_id)
-                    .values(state=JobState.MERGING, updated_at=now)
-                )
+            job = conn.execute(
+                sa.update(jobs).where(jobs.c.id == lease.job_id)
+                .values(shards_done=jobs.c.shards_done + 1, updated_at=now)
+                .returning(jobs.c.shards, jobs.c.shards_done, jobs.c.shards_skipped, jobs.c.folded)
+            ).one()
+            self._wake_merge(conn, lease.job_id, job.folded, job.shards, job.shards_done + job.shards_skipped)
 
-    def load_shard_results(self, job_id: str) -> list[tuple[int, bytes]]:
-        """Every stored ``(shard_index, payload)`` of a job, in shard order."""
-        with self.engine.connect() as conn:
-            rows = conn.execute(
-                sa.select(shard_results.c.shard_index, shard_results.c.payload)
-                .where(shard_results.c.job_id == job_id)
-                .order_by(shard_results.c.shard_index)
-            ).all()
-        return [(int(i), bytes(p)) for i, p in rows]
+    def _wake_merge(self, conn: Connection, job_id: str, folded: int, total: int, resolved: int) -> None:
+        """Queue the waiting merge task if the fold can advance: the ``fold_batch`` tasks from
+        ``folded`` on are done (indexed range count, O(fold_batch)), or every task is resolved;
+        set the job ``merging`` once every task is done or skipped."""
+        if resolved >= total:
+            ready = True
+            conn.execute(
+                sa.update(jobs).where(jobs.c.id == job_id, jobs.c.state == JobState.RUNNING)
+                .values(state=JobState.MERGING, updated_at=self._now())
+            )
+        else:
+            n = min(self.fold_batch, total - folded)
+            ready = n > 0 and conn.execute(
+                sa.select(sa.func.count()).where(
+                    tasks.c.job_id == job_id, tasks.c.shard_index >= folded, tasks.c.shard_index < folded + n,
+                    tasks.c.kind == TaskKind.SHARD, tasks.c.state == TaskState.DONE,
+                )
+            ).scalar_one() == n
+        if ready:
+            conn.execute(
+                sa.update(tasks)
+                .where(tasks.c.job_id == job_id, tasks.c.kind == TaskKind.MERGE, tasks.c.state == TaskState.WAITING)
+                .values(state=TaskState.QUEUED)
+            )
 
     def complete_merge(self, lease: Lease, name: str, meta: dict, publisher: Publisher) -> int:
         """Publish a dataset version and end the job ``succeeded``, in one transaction.
@@ -222,7 +241,7 @@ class QueueMixin(StoreBase):
                     publisher.publish(version)
                     conn.execute(
                         sa.update(jobs).where(jobs.c.id == lease.job_id).values(
-                            state=JobState.SUCCEEDED, finished_at=now, updated_at=now,
+                            state=JobState.SUCCEEDED, finished_at=now, updated_at=now, folded=jobs.c.shards,
                             dataset_name=name, dataset_version=version,
                         )
                     )

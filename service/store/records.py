@@ -11,7 +11,10 @@ from typing import Any
 
 from service.store.states import JobState, TaskKind
 
-__all__ = ["JobRecord", "Lease", "JobProgress", "DatasetVersionRecord", "DatasetRecord", "ExportRecord", "Submission"]
+__all__ = [
+    "JobRecord", "Lease", "JobProgress", "DatasetVersionRecord", "DatasetRecord", "ExportRecord", "Submission",
+    "StoredFile", "FoldPosition", "MediumProgress",
+]
 
 
 @dataclass(frozen=True)
@@ -96,6 +99,10 @@ class JobProgress:
     error: str | None
     dataset_name: str | None = None
     dataset_version: int | None = None
+    shards_skipped: int = 0  # cancelled by an early stop: their medium met its target first
+    tasks_folded: int = 0  # tasks the merge has folded, in task order (it is past them)
+    media_total: int = 1  # media of the job (a sweep's grid; 1 for a single medium)
+    media_merged: int = 0  # media the merge is past (their tables are final)
 
 
 @dataclass(frozen=True)
@@ -145,3 +152,37 @@ class ExportRecord:
     bytes: int
     created_at: float
     meta: dict[str, Any] = field(repr=False)  # export.json: provenance and the archive's files
+
+
+@dataclass(frozen=True)
+class StoredFile:
+    """A file the job store points to (a shard result, a fold): its path relative to the storage
+    root, size and sha256 (checked by whoever reads it: service.datasets.storage.verified_bytes)."""
+
+    uri: str
+    bytes: int
+    sha256: str
+
+
+@dataclass(frozen=True)
+class FoldPosition:
+    """Where a job's merge stands: tasks folded in task order so far and the file of that fold."""
+
+    folded: int  # the next task the fold needs
+    fold: StoredFile | None  # None before the first fold round committed
+    tasks: int  # shard tasks of the job (media x shards)
+    shards_done: int
+    shards_skipped: int  # cancelled by an early stop (their results never counted)
+
+
+@dataclass(frozen=True)
+class MediumProgress:
+    """Shard counts of one medium of a job (task t belongs to medium t // shards)."""
+
+    medium: int
+    shards_total: int
+    shards_done: int
+    shards_running: int  # leased, lease live
+    shards_skipped: int  # cancelled: the medium met its target first, or the job ended
+    folded: int  # where the merge stands in the medium: shards folded (shards_total once past it)
+    merged: bool  # the merge is past the medium: its tables are final

@@ -10,6 +10,7 @@ from alembic.config import Config
 
 from service.store.catalog import CatalogMixin
 from service.store.exports import ExportsMixin
+from service.store.fold import FoldMixin
 from service.store.jobs import JobsMixin
 from service.store.lifecycle import LifecycleMixin
 from service.store.queue import QueueMixin
@@ -23,19 +24,23 @@ MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
 _PG_MIGRATION_LOCK = 0x6273_7372_6466  # arbitrary advisory-lock key ("bssrdf")
 
 
-class JobStore(JobsMixin, QueueMixin, CatalogMixin, ExportsMixin, LifecycleMixin):
+class JobStore(JobsMixin, QueueMixin, FoldMixin, CatalogMixin, ExportsMixin, LifecycleMixin):
     """Jobs, the shard/merge lease queue, the dataset catalog and its exports in one SQL database.
 
     ``JobStore(url)`` works for ``sqlite:///FILE`` (one host) and ``postgresql+psycopg://...``
     (many hosts) with the same code; ``migrate=True`` applies the Alembic migrations on open.
-    Create one store per process.
+    ``fold_batch``: done shards in task order the merge waits for before a fold round
+    (``BSSRDF_FOLD_BATCH``). Create one store per process.
     """
 
     def __init__(
         self, url: str, *, max_attempts: int = 3, retry_policy: RetryPolicy = RetryPolicy(),
-        migrate: bool = True,
+        migrate: bool = True, fold_batch: int = 8,
     ) -> None:
         super().__init__(url, max_attempts=max_attempts, retry_policy=retry_policy)
+        if fold_batch < 1:
+            raise ValueError(f"fold_batch must be >= 1; received {fold_batch}")
+        self.fold_batch = fold_batch
         if migrate:
             self.migrate()
 

@@ -1,4 +1,5 @@
-"""SQLAlchemy Core tables of the job store (the schema created by migrations 0001, 0002, 0003_lifecycle).
+"""SQLAlchemy Core tables of the job store (the schema created by migrations 0001, 0002, 0003_lifecycle,
+0004_shard_files).
 
 Times are seconds since the Unix epoch (float64) read from the *database* clock
 (:func:`service.store.engine.db_now`), so leases are judged by one clock for every worker host.
@@ -19,7 +20,7 @@ jobs = sa.Table(
     sa.Column("name", sa.String(200), nullable=False),  # dataset name (spec.name)
     sa.Column("spec_json", sa.Text, nullable=False),  # spec.canonical_json()
     sa.Column("spec_hash", sa.String(64), nullable=False),
-    sa.Column("shards", sa.Integer, nullable=False),
+    sa.Column("shards", sa.Integer, nullable=False),  # shard tasks: media x shards per medium
     sa.Column("state", sa.String(16), nullable=False),  # JobState
     sa.Column("idempotency_key", sa.String(200), unique=True, nullable=True),
     sa.Column("created_at", sa.Float, nullable=False),
@@ -30,6 +31,13 @@ jobs = sa.Table(
     sa.Column("dataset_name", sa.String(200)),
     sa.Column("dataset_version", sa.Integer),
     sa.Column("photons_total", sa.BigInteger),  # photons x angles x channels x media (None: unknown)
+    # Shard tasks are media x shards (column "shards"); counters kept by commits and the fold:
+    sa.Column("shards_done", sa.Integer, nullable=False, server_default="0"),  # +1 per shard commit
+    sa.Column("shards_skipped", sa.Integer, nullable=False, server_default="0"),  # cancelled by an early stop
+    sa.Column("folded", sa.Integer, nullable=False, server_default="0"),  # tasks folded, in task order
+    sa.Column("fold_uri", sa.Text),  # the fold of those tasks: file relative to the storage root
+    sa.Column("fold_bytes", sa.BigInteger),
+    sa.Column("fold_sha256", sa.String(64)),
     sa.Index("ix_jobs_spec_hash", "spec_hash"),
 )
 
@@ -41,7 +49,7 @@ tasks = sa.Table(
     sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
     sa.Column("job_id", sa.String(36), sa.ForeignKey("jobs.id", ondelete="CASCADE"), nullable=False),
     sa.Column("kind", sa.String(8), nullable=False),  # TaskKind
-    sa.Column("shard_index", sa.Integer),  # None for the merge task
+    sa.Column("shard_index", sa.Integer),  # task index medium * shards + shard (schema.media); None: merge
     sa.Column("state", sa.String(16), nullable=False),  # TaskState
     sa.Column("attempts", sa.Integer, nullable=False, server_default="0"),  # claims so far
     sa.Column("max_attempts", sa.Integer, nullable=False),
@@ -58,6 +66,10 @@ tasks = sa.Table(
     sa.Column("error", sa.Text),
     sa.Index("ix_tasks_state_id", "state", "id"),
     sa.Index("ix_tasks_job_id", "job_id"),
+    sa.Index("ix_tasks_job_shard", "job_id", "shard_index"),  # one task of a job (migration 0004)
+    # Live merge tasks, claimed before shards so that the fold keeps up (partial index, 0004).
+    sa.Index("ix_tasks_merge_live", "id", sqlite_where=sa.text("kind = 'merge' AND state IN ('queued', 'leased')"),
+             postgresql_where=sa.text("kind = 'merge' AND state IN ('queued', 'leased')")),
     # The claim's candidates: queued and leased tasks only (partial index, migration 0002).
     sa.Index("ix_tasks_live", "id", sqlite_where=sa.text("state IN ('queued', 'leased')"),
              postgresql_where=sa.text("state IN ('queued', 'leased')")),
@@ -68,7 +80,10 @@ shard_results = sa.Table(
     metadata,
     sa.Column("job_id", sa.String(36), sa.ForeignKey("jobs.id", ondelete="CASCADE"), primary_key=True),
     sa.Column("shard_index", sa.Integer, primary_key=True),  # unique (job_id, shard_index)
-    sa.Column("payload", sa.LargeBinary, nullable=False),  # ShardTally.to_bytes()
+    sa.Column("payload", sa.LargeBinary, nullable=True),  # results stored before migration 0004 only
+    sa.Column("uri", sa.Text),  # the ShardTally.to_bytes() file, relative to the storage root
+    sa.Column("bytes", sa.BigInteger),
+    sa.Column("sha256", sa.String(64)),
     sa.Column("created_at", sa.Float, nullable=False),
 )
 

@@ -8,6 +8,7 @@ import socket
 from service.datasets import DatasetStorage
 from service.store import JobStore
 from tests.api.conftest import AUTH, TINY_SPEC
+from tests.support.files import stored
 
 # name{label="value",...} value   (the value: a float, an integer, NaN or +-Inf)
 SAMPLE = re.compile(r'^([a-zA-Z_:][a-zA-Z0-9_:]*)(\{([a-zA-Z_][a-zA-Z0-9_]*="(?:[^"\\]|\\.)*",?)*\})? '
@@ -99,7 +100,7 @@ def test_metrics_prometheus_text(client, store):
     assert empty['bssrdf_jobs{state="queued"}'] == 0 and empty["bssrdf_photons_simulated_total"] == 0
     client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers=AUTH)
     lease = store.claim("w", 60)
-    store.complete_shard(lease, b"payload", photons=123, elapsed_s=0.5)
+    store.complete_shard(lease, stored(b"payload"), photons=123, elapsed_s=0.5)
     m = parse_metrics(client.get("/metrics").text)
     assert m['bssrdf_jobs{state="running"}'] == 1 and m['bssrdf_jobs{state="queued"}'] == 0
     for state in ("queued", "running", "merging", "succeeded", "failed", "cancelled"):

@@ -20,6 +20,7 @@ from schema import parse_spec
 from service.store import JobNotFound, JobState, LeaseLost
 from service.worker import Worker
 from tests.api.conftest import AUTH, TINY_SPEC, TOKEN, tiny_spec
+from tests.support.files import stored
 
 
 def run_all(store, storage) -> None:
@@ -100,7 +101,7 @@ def test_delete_a_job(client, store, storage):
     assert storage.fs.get_file_info(job_dir).type.name == "NotFound"
     assert store.heartbeat(lease, 60) is False  # the worker loses its lease
     with pytest.raises((LeaseLost, JobNotFound)):
-        store.complete_shard(lease, b"late", photons=1, elapsed_s=0.1)
+        store.complete_shard(lease, stored(b"late"), photons=1, elapsed_s=0.1)
     assert store.claim("w", 60) is None
     # a job whose version is published is its provenance: 409 until the version is deleted
     done = client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers=AUTH).json()

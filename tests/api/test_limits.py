@@ -194,3 +194,22 @@ def test_a_bad_token_setting_is_one_clear_line_not_a_traceback(value, tmp_path):
 def test_serve_help_explains_tokens():
     out = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--help"], capture_output=True, text=True)
     assert "BSSRDF_API_TOKENS" in out.stdout and "Authorization: Bearer TOKEN" in out.stdout
+
+
+def test_shard_payload_and_dataset_size_limits_name_the_estimates(make_client, store, storage):
+    from schema.sizes import estimate_sizes
+
+    spec = tiny_spec()
+    spec.pop("medium", None)
+    spec["sweep"] = {"albedo": {"count": 8}, "g": [0.0], "eta": [1.3]}
+    est = estimate_sizes(parse_spec(spec))
+    client = make_client(store, storage, max_shard_bytes=est.shard_payload_bytes - 1,
+                         max_dataset_bytes=est.dataset_bytes - 1)
+    r = client.post("/v1/jobs", json={"spec": spec}, headers=AUTH)
+    assert r.status_code == 422, r.text
+    by_field = {p["field"]: p for p in r.json()["detail"]}
+    assert str(est.shard_payload_bytes) in by_field["spec.bins"]["message"]
+    assert "8 media" in by_field["spec.sweep"]["message"] and by_field["spec.sweep"]["received"] == est.dataset_bytes
+    assert job_count(store) == 0
+    fits = make_client(store, storage, max_shard_bytes=est.shard_payload_bytes, max_dataset_bytes=est.dataset_bytes)
+    assert fits.post("/v1/jobs", json={"spec": spec}, headers=AUTH).status_code == 201

@@ -28,6 +28,9 @@ class FakeSpec:
     shards: int = 3
     seed: int = 1
 
+    def task_count(self) -> int:
+        return self.shards  # one medium
+
     def canonical_json(self) -> str:
         return json.dumps({"name": self.name, "shards": self.shards, "seed": self.seed}, sort_keys=True)
 

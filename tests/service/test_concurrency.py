@@ -39,7 +39,7 @@ def test_four_processes_race_over_fifty_tasks(store, db_url):
     assert m["tasks_claimed"] == 50 and m["shards_completed"] == 45 and m["leases_expired"] == 0
     for job in jobs:
         assert store.get_job(job.id).state == JobState.MERGING
-        assert [i for i, _ in store.load_shard_results(job.id)] == list(range(9))
+        assert [i for i, _ in store.shard_files(job.id)] == list(range(9))
 
 
 def test_threads_race_without_double_claims(store, db_url):

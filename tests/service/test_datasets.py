@@ -13,12 +13,13 @@ from service.datasets import DatasetStorage, open_version
 from service.datasets.metadata import metadata_bytes
 from service.store import ChecksumMismatch, JobState, LeaseLost, VersionNotFound
 from tests.service.conftest import FakeSpec
+from tests.support.files import stored
 
 
 def merge_lease(store, name="ds", lease_seconds=30):
     store.submit(FakeSpec(name, shards=1))
     shard = store.claim("w", 30)
-    store.complete_shard(shard, b"tally", photons=5, elapsed_s=0.1)
+    store.complete_shard(shard, stored(b"tally"), photons=5, elapsed_s=0.1)
     return store.claim("w", lease_seconds)
 
 

@@ -8,6 +8,7 @@ import pytest
 
 from service.store import JobState, LeaseLost, TaskKind, TaskState, decide_retry, RetryPolicy
 from tests.service.conftest import FakeSpec
+from tests.support.files import stored
 
 SHORT = 0.2  # seconds: a lease that expires within the test
 
@@ -16,7 +17,7 @@ def finish_shards(store, job_id, n):
     for _ in range(n):
         lease = store.claim("w", 30)
         assert lease.kind == TaskKind.SHARD and lease.job_id == job_id
-        store.complete_shard(lease, b"p%d" % lease.shard_index, photons=100, elapsed_s=0.1)
+        store.complete_shard(lease, stored(b"p%d" % lease.shard_index), photons=100, elapsed_s=0.1)
 
 
 def test_claim_order_oldest_job_first_then_shard_index(store):
@@ -33,13 +34,13 @@ def test_merge_task_is_gated_on_all_shards(store):
     leases = [store.claim("w", 30) for _ in range(3)]
     assert store.claim("w", 30) is None
     for lease in leases[:2]:
-        store.complete_shard(lease, b"x", photons=10, elapsed_s=0.1)
+        store.complete_shard(lease, stored(b"x"), photons=10, elapsed_s=0.1)
     assert store.claim("w", 30) is None and store.progress(job.id).merge_state == TaskState.WAITING
-    store.complete_shard(leases[2], b"x", photons=10, elapsed_s=0.1)
+    store.complete_shard(leases[2], stored(b"x"), photons=10, elapsed_s=0.1)
     assert store.get_job(job.id).state == JobState.MERGING
     merge = store.claim("w", 30)
     assert merge.kind == TaskKind.MERGE and merge.shard_index is None
-    assert [i for i, _ in store.load_shard_results(job.id)] == [0, 1, 2]
+    assert [i for i, _ in store.shard_files(job.id)] == [0, 1, 2]
 
 
 def test_expired_lease_is_reclaimed_with_new_token_and_counts_as_attempt(store):
@@ -58,10 +59,10 @@ def test_stale_commit_is_refused_and_nothing_counted_twice(store):
     stale = store.claim("slow", SHORT)
     time.sleep(SHORT + 0.1)
     fresh = store.claim("fast", 30)
-    store.complete_shard(fresh, b"fresh", photons=100, elapsed_s=1.0)
+    store.complete_shard(fresh, stored(b"fresh"), photons=100, elapsed_s=1.0)
     with pytest.raises(LeaseLost):
-        store.complete_shard(stale, b"stale", photons=100, elapsed_s=1.0)
-    assert store.load_shard_results(job.id) == [(0, b"fresh")]
+        store.complete_shard(stale, stored(b"stale"), photons=100, elapsed_s=1.0)
+    assert store.shard_files(job.id) == [(0, stored(b"fresh"))]
     m = store.metrics()
     assert m["shards_completed"] == 1 and m["photons_simulated"] == 100
     assert store.progress(job.id).photons_done == 100
@@ -73,9 +74,9 @@ def test_stale_commit_refused_even_before_the_done_commit(store):
     time.sleep(SHORT + 0.1)
     fresh = store.claim("fast", 30)
     with pytest.raises(LeaseLost):
-        store.complete_shard(stale, b"stale", photons=1, elapsed_s=1.0)
-    store.complete_shard(fresh, b"fresh", photons=1, elapsed_s=1.0)
-    assert store.load_shard_results(job.id) == [(0, b"fresh")]
+        store.complete_shard(stale, stored(b"stale"), photons=1, elapsed_s=1.0)
+    store.complete_shard(fresh, stored(b"fresh"), photons=1, elapsed_s=1.0)
+    assert store.shard_files(job.id) == [(0, stored(b"fresh"))]
 
 
 def test_heartbeat_extends_live_lease_and_reports_lost_lease(store):
@@ -139,7 +140,7 @@ def test_pending_tasks_counts_what_can_still_become_claimable(store):
     job = store.submit(FakeSpec(shards=2))
     assert store.pending_tasks() == 3  # two shards and the waiting merge
     a, b = store.claim("w", 30), store.claim("w", 30)
-    store.complete_shard(a, b"x", photons=1, elapsed_s=0.0)
+    store.complete_shard(a, stored(b"x"), photons=1, elapsed_s=0.0)
     assert store.pending_tasks() == 2  # one running shard, the merge still waits for it
     assert store.fail_task(b, "boom")  # retried after a backoff: still pending
     assert store.pending_tasks() == 2
@@ -155,8 +156,8 @@ def test_cancel_stops_claims_and_refuses_late_commits(store):
     assert store.claim("w", 30) is None
     assert store.heartbeat(lease, 30) is False
     with pytest.raises(LeaseLost):
-        store.complete_shard(lease, b"late", photons=1, elapsed_s=1)
-    assert store.load_shard_results(job.id) == []
+        store.complete_shard(lease, stored(b"late"), photons=1, elapsed_s=1)
+    assert store.shard_files(job.id) == []
     assert store.cancel(job.id).state == JobState.CANCELLED  # idempotent
     p = store.progress(job.id)
     assert (p.shards_cancelled, p.shards_failed, p.shards_running) == (3, 0, 0) and p.eta_s is None

@@ -33,7 +33,7 @@ def test_lost_lease_discards_the_shard(sqlite_url, tmp_path):
     lease = worker.claim()
     threading.Timer(0.3, store.cancel, args=(job.id,)).start()  # the heartbeat then finds the lease lost
     worker.process(lease)
-    assert store.load_shard_results(job.id) == []
+    assert store.shard_files(job.id) == []
     assert store.get_job(job.id).state == JobState.CANCELLED
 
 

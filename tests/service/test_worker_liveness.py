@@ -10,7 +10,7 @@ import time
 import pytest
 
 from schema import parse_spec
-from service.datasets import DatasetStorage
+from service.datasets import DatasetStorage, JobFiles
 from service.store import JobState, TaskKind
 from service.worker import Worker, _Heartbeat
 from tests.api.conftest import TINY_SPEC
@@ -51,7 +51,8 @@ def test_once_waits_for_a_merge_that_waits_for_another_worker(store, tmp_path):
     spec = parse_spec(TINY_SPEC)
     job = store.submit(spec)
     other = store.claim("other-worker", 60)  # shard 0, held by someone else
-    worker = Worker(store, DatasetStorage(str(tmp_path / "data")), once=True, poll_seconds=0.05)
+    storage = DatasetStorage(str(tmp_path / "data"))
+    worker = Worker(store, storage, once=True, poll_seconds=0.05)
     thread = threading.Thread(target=worker.loop)
     thread.start()
     deadline = time.monotonic() + 60
@@ -60,7 +61,8 @@ def test_once_waits_for_a_merge_that_waits_for_another_worker(store, tmp_path):
     time.sleep(0.3)
     assert thread.is_alive(), "--once left while the job's merge still waited for a running shard"
     tally = run_shard(spec, other.shard_index)
-    store.complete_shard(other, tally.to_bytes(), photons=tally.photons, elapsed_s=tally.elapsed_s)
+    ref = JobFiles(storage, job.id).write(f"shards/{other.shard_index:08d}-{other.token}.tally", tally.to_bytes())
+    store.complete_shard(other, ref, photons=tally.photons, elapsed_s=tally.elapsed_s)
     thread.join(60)
     assert not thread.is_alive() and store.get_job(job.id).state == JobState.SUCCEEDED
     assert other.kind == TaskKind.SHARD

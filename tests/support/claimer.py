@@ -11,6 +11,7 @@ import sys
 import time
 
 from service.store import JobStore, TaskKind
+from tests.support.files import stored
 
 
 def main(url: str, start_at: float) -> None:
@@ -28,7 +29,7 @@ def main(url: str, start_at: float) -> None:
         idle = 0
         claims.append([lease.task_id, lease.token, str(lease.kind)])
         if lease.kind == TaskKind.SHARD:
-            store.complete_shard(lease, os.urandom(64), photons=1, elapsed_s=0.0)
+            store.complete_shard(lease, stored(os.urandom(64)), photons=1, elapsed_s=0.0)
     print(json.dumps(claims))
 
 

@@ -1,0 +1,123 @@
+"""The merge's side of the queue: where the fold stands, the shard results it reads, its commits.
+
+The merge task of a job is an incremental fold (service.datasets.publish): each time it is
+claimed it folds, in task order, the done tasks from ``jobs.folded`` on, saves the fold to a
+file and commits here, fenced by its lease, the new cursor and that file (:meth:`advance_fold`);
+the task then waits again until the next ``fold_batch`` tasks are done (``_wake_merge`` in the
+queue). A medium that met its target error ends early: the rest of its tasks are cancelled in the
+same commit (``shards_skipped``) and their results are never read. The last round publishes the
+version (``complete_merge``).
+"""
+
+from __future__ import annotations
+
+import sqlalchemy as sa
+
+from service.store.base import StoreBase
+from service.store.errors import LeaseLost
+from service.store.records import FoldPosition, Lease, MediumProgress, StoredFile
+from service.store.states import TaskKind, TaskState
+from service.store.tables import jobs, shard_results, tasks
+
+__all__ = ["FoldMixin", "StoredResult"]
+
+StoredResult = StoredFile | bytes
+"""A shard's stored result: its file, or (stored before migration 0004) the payload itself."""
+
+
+class FoldMixin(StoreBase):
+    """Reads and fenced commits of the incremental merge (with QueueMixin's ``_fenced`` and
+    ``_wake_merge`` in :class:`service.store.JobStore`)."""
+
+    def fold_position(self, job_id: str) -> FoldPosition:
+        """The job's fold cursor, fold file and task counters."""
+        with self.engine.connect() as conn:
+            j = conn.execute(sa.select(jobs).where(jobs.c.id == job_id)).one()._mapping
+        fold = None if j["fold_uri"] is None else StoredFile(j["fold_uri"], int(j["fold_bytes"]), j["fold_sha256"])
+        return FoldPosition(int(j["folded"]), fold, int(j["shards"]), int(j["shards_done"]), int(j["shards_skipped"]))
+
+    def shard_result(self, job_id: str, task: int) -> StoredResult | None:
+        """The result of task ``task`` if it is done (its task row done, its result recorded), else None."""
+        r = shard_results.c
+        with self.engine.connect() as conn:
+            row = conn.execute(
+                sa.select(r.uri, r.bytes, r.sha256, r.payload)
+                .join(tasks, sa.and_(tasks.c.job_id == r.job_id, tasks.c.shard_index == r.shard_index,
+                                     tasks.c.kind == TaskKind.SHARD))
+                .where(r.job_id == job_id, r.shard_index == int(task), tasks.c.state == TaskState.DONE)
+            ).first()
+        if row is None:
+            return None
+        return bytes(row.payload) if row.uri is None else StoredFile(row.uri, int(row.bytes), row.sha256)
+
+    def shard_files(self, job_id: str) -> list[tuple[int, StoredResult]]:
+        """Every recorded ``(task, result)`` of a job, in task order (for tests and tools)."""
+        r = shard_results.c
+        with self.engine.connect() as conn:
+            rows = conn.execute(
+                sa.select(r.shard_index, r.uri, r.bytes, r.sha256, r.payload).where(r.job_id == job_id)
+                .order_by(r.shard_index)
+            ).all()
+        return [(int(i), bytes(p) if uri is None else StoredFile(uri, int(n), h)) for i, uri, n, h, p in rows]
+
+    def advance_fold(self, lease: Lease, *, folded: int, fold: StoredFile, skipped: list[range]) -> None:
+        """Commit a fold round, fenced by the merge lease: the cursor ``folded`` and the fold's
+        file; the tasks in ``skipped`` (a medium's shards past its early stop) cancelled, so
+        they are not claimed and their late commits refused. The merge task waits again (queued
+        at once if the next tasks are already done), its attempts reset: only consecutive failed
+        rounds count. Raises :class:`LeaseLost` if the lease is not ours (nothing written).
+        """
+        if lease.kind != TaskKind.MERGE:
+            raise ValueError(f"advance_fold needs a merge lease; received a {lease.kind} lease")
+        now = self._now()
+        with self._tx() as conn:
+            self._lock_job(conn, lease.job_id)
+            back = conn.execute(
+                sa.update(tasks).where(self._fenced(lease))
+                .values(state=TaskState.WAITING, attempts=0, lease_expires_at=None, lease_owner=None)
+            )
+            if back.rowcount != 1:
+                raise LeaseLost(lease.task_id, lease.token, "lease expired and re-claimed, or job cancelled")
+            cancelled = 0
+            for r in skipped:
+                cancelled += conn.execute(
+                    sa.update(tasks).where(
+                        tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.SHARD,
+                        tasks.c.shard_index >= r.start, tasks.c.shard_index < r.stop,
+                        tasks.c.state.in_([TaskState.QUEUED, TaskState.LEASED, TaskState.WAITING]),
+                    ).values(state=TaskState.CANCELLED, lease_expires_at=None, finished_at=now,
+                             error="skipped: its medium met the target error with fewer shards")
+                ).rowcount
+            job = conn.execute(
+                sa.update(jobs).where(jobs.c.id == lease.job_id)
+                .values(folded=int(folded), fold_uri=fold.uri, fold_bytes=int(fold.bytes), fold_sha256=fold.sha256,
+                        shards_skipped=jobs.c.shards_skipped + cancelled, updated_at=now)
+                .returning(jobs.c.shards, jobs.c.shards_done, jobs.c.shards_skipped)
+            ).one()
+            self._wake_merge(conn, lease.job_id, int(folded), job.shards, job.shards_done + job.shards_skipped)
+
+    def medium_progress(self, job_id: str, shards_per_medium: int, *, offset: int = 0,
+                        limit: int = 1000) -> list[MediumProgress]:
+        """Shard counts per medium (task t is medium t // shards_per_medium) for media
+        [offset, offset + limit), with where the merge stands in each."""
+        now = self._now()
+        t = tasks.c
+        medium = (t.shard_index // shards_per_medium).label("medium")  # integer division on both databases
+        lo, hi = offset * shards_per_medium, (offset + limit) * shards_per_medium
+        with self.engine.connect() as conn:
+            folded = conn.execute(sa.select(jobs.c.folded).where(jobs.c.id == job_id)).scalar_one()
+            rows = conn.execute(
+                sa.select(
+                    medium, sa.func.count(),
+                    sa.func.count().filter(t.state == TaskState.DONE),
+                    sa.func.count().filter(t.state == TaskState.LEASED, t.lease_expires_at >= now),
+                    sa.func.count().filter(t.state == TaskState.CANCELLED),
+                ).where(t.job_id == job_id, t.kind == TaskKind.SHARD, t.shard_index >= lo, t.shard_index < hi)
+                .group_by(medium).order_by(medium)
+            ).all()
+        return [
+            MediumProgress(int(m), int(n), int(done), int(running), int(skipped),
+                           max(0, min(shards_per_medium, folded - int(m) * shards_per_medium)),
+                           folded >= (int(m) + 1) * shards_per_medium)
+            for m, n, done, running, skipped in rows
+        ]
