@@ -1,7 +1,7 @@
 """What a spec will store before it runs: the shard payload and the dataset size (torch-free).
 
 A shard's result (``workers.tally.ShardTally``) holds, per estimator, three float64 sums
-(S1, S2, SXN: workers.tally) of every quantity, for every configuration c (incidence angle x
+(S1, S2, SXN: workers.tally) and an int64 event count of every quantity, for every configuration c (incidence angle x
 channel of its medium) and component (single, multiple, total):
 
     bins_G, bins_S   [c, 3, n_r + 1, n_theta_s, n_cos, n_phi]   (radial index n_r: beyond r_max)
@@ -67,7 +67,7 @@ def estimate_sizes(spec: SimulationSpec) -> SizeEstimate:
     names = spec.medium.channel_names if spec.sweep is None else ["c0"]  # a sweep medium has one channel
     c = n_angles * len(names)
     per_estimator = c * 3 * ((n_r + 1) * (2 * n_t * n_c * n_p + 1) + 1)
-    payload = 3 * 8 * (len(est) * per_estimator + 2 * c)
+    payload = 4 * 8 * (len(est) * per_estimator + 2 * c) + 16 * (len(est) + 1)
     keys = len(est) * spec.n_media * c * 3  # (estimator, medium, configuration, component)
     channel_chars = sum(map(len, names)) / len(names)
     est_chars = sum(map(len, est)) / len(est)
@@ -100,7 +100,7 @@ def size_limit_problems(spec: SimulationSpec, max_shard_bytes: int, max_dataset_
             "spec.bins",
             f"a shard's tally would hold an estimated {format_bytes(size.shard_payload_bytes)} "
             f"({size.shard_payload_bytes} bytes before compression: {bins}, {len(spec.incidence_deg)} incidence "
-            f"angles, 3 components, 3 sums each, schema.sizes), over the limit {format_bytes(max_shard_bytes)} "
+            f"angles, 3 components, 3 sums and a count each, schema.sizes), over the limit {format_bytes(max_shard_bytes)} "
             "(BSSRDF_MAX_SHARD_BYTES); use fewer bins or incidence angles (more shards do not help: every shard "
             "tallies every bin)",
             f"estimated shard payload <= {max_shard_bytes} bytes", size.shard_payload_bytes))

@@ -110,8 +110,10 @@ class SimulationSpec(BaseModel):
         4, description="Batches per shard for standard errors, 1..1024; shards * batches_per_shard "
         "must be in [2, photons].", validate_default=True,
     )
-    estimator: Literal["connections", "exits", "both"] = Field(
-        "connections", description="Tally by next-event connections, by exits, or both."
+    estimator: Literal["hybrid", "exits", "connections", "both"] = Field(
+        "hybrid", description="hybrid (default): single scattering by connections from the first "
+        "vertex, multiple by the exit tally; exits: the exit tally alone; connections: every "
+        "vertex connected to every bin; both: exits and connections on one walk.",
     )
     absorption: Literal["weights", "analog"] = Field(
         "weights", description="Weights with Russian roulette (default) or analog absorption."

@@ -13,7 +13,7 @@ sweep are rows of one table:
   weight, photon count.
 
 All tallies are normalised by the incident power 1; standard errors come from the batches.
-Strings: ``estimator`` in {"exits", "connections"}, ``component`` in {"single", "multiple",
+Strings: ``estimator`` in {"hybrid", "exits", "connections"}, ``component`` in {"single", "multiple",
 "total"}, ``channel`` a channel name of the medium. Version rule: adding a column or a metadata
 key keeps ``SCHEMA_VERSION``; renaming, removing or changing the meaning or unit of a column bumps
 it.
@@ -51,13 +51,13 @@ META_RUN = b"bssrdf.run"
 META_SCHEMA_VERSION = b"bssrdf.schema_version"
 """Metadata key: ``SCHEMA_VERSION`` as ASCII."""
 
-ESTIMATORS = ("exits", "connections")
+ESTIMATORS = ("hybrid", "exits", "connections")
 """Values of the ``estimator`` column (a spec's ``"both"`` gives rows of each)."""
 COMPONENTS = ("single", "multiple", "total")
 """Values of the ``component`` column: exactly one scattering event, two or more, all."""
 
 COLUMN_DOCS: dict[str, str] = {
-    "estimator": 'Estimator that produced the row: "exits" or "connections".',
+    "estimator": 'Estimator that produced the row: "hybrid" (the default), "exits" or "connections".',
     "medium": "Index of the medium in the job (0 for a single medium; a sweep's media are "
               "numbered albedo fastest, eta slowest: see schema.media).",
     "albedo": "Single-scattering albedo sigma_s / sigma_t of the row's medium and channel.",
@@ -69,7 +69,11 @@ COLUMN_DOCS: dict[str, str] = {
     "r_lo_mm": "Inner radius of the bin [mm] (inclusive).",
     "r_hi_mm": "Outer radius of the bin [mm] (exclusive).",
     "Rd_r": "Radial diffuse reflectance Rd(r): flux through the annulus / its area [1/mm^2].",
-    "Rd_r_stderr": "Standard error of Rd_r [1/mm^2].",
+    "Rd_r_stderr": "Standard error of Rd_r [1/mm^2]; NaN where no event contributed (no error bar).",
+    "events": "Contributing events of the row's estimate: exits tallied, connection samples with a "
+              "nonzero value (int64). 0 means unresolved: the estimate is 0 with a NaN standard error.",
+    "unresolved_bins": "Bins of the bins table (inside r_max) with no contributing event for this "
+                       "estimator, configuration and component (int64).",
     "theta_s_lo": "Lower exit azimuth theta_s [rad] from +x (inclusive), in [0, 2 pi).",
     "theta_s_hi": "Upper exit azimuth theta_s [rad] (exclusive).",
     "cos_theta_o_lo": "Lower cos(theta_o) of the outgoing direction (inclusive), in [0, 1].",
@@ -77,13 +81,13 @@ COLUMN_DOCS: dict[str, str] = {
     "phi_o_lo": "Lower outgoing azimuth phi_o [rad] from the outward radial direction.",
     "phi_o_hi": "Upper outgoing azimuth phi_o [rad] (exclusive).",
     "G": "Fraction of the incident power leaving through the bin [dimensionless].",
-    "G_stderr": "Standard error of G [dimensionless].",
+    "G_stderr": "Standard error of G [dimensionless]; NaN where no event contributed.",
     "S": "BSSRDF averaged over the bin in dA d omega: sum w / cos(theta_o) / (A Omega) "
          "[1/(mm^2 sr)]; includes the entry Fresnel factor.",
-    "S_stderr": "Standard error of S [1/(mm^2 sr)].",
+    "S_stderr": "Standard error of S [1/(mm^2 sr)]; NaN where no event contributed.",
     "R_spec": "Specular reflectance at entry, Fr(cos theta_i, eta) [dimensionless].",
     "Rd": "Total diffuse reflectance: sum of G over all bins [dimensionless].",
-    "Rd_stderr": "Standard error of Rd [dimensionless].",
+    "Rd_stderr": "Standard error of Rd [dimensionless]; NaN where no event contributed.",
     "Rd_beyond_rmax": "Diffuse reflectance leaving beyond the outer radial edge [dimensionless].",
     "Rd_beyond_rmax_stderr": "Standard error of Rd_beyond_rmax [dimensionless].",
     "absorbed": "Fraction of the incident power absorbed in the medium [dimensionless].",
@@ -95,7 +99,7 @@ COLUMN_DOCS: dict[str, str] = {
 """Column name -> meaning and unit. Also stored as each field's ``doc`` metadata."""
 
 _STRING = ("estimator", "channel", "component")
-_INT64 = ("photons", "medium")
+_INT64 = ("photons", "medium", "events", "unresolved_bins")
 
 
 def _schema(names: list[str]) -> pa.Schema:
@@ -110,18 +114,18 @@ def _schema(names: list[str]) -> pa.Schema:
 
 _KEYS = ["estimator", "medium", "albedo", "g", "eta", "incidence_deg", "channel", "component"]
 
-RADIAL_SCHEMA = _schema(_KEYS + ["r_lo_mm", "r_hi_mm", "Rd_r", "Rd_r_stderr"])
+RADIAL_SCHEMA = _schema(_KEYS + ["r_lo_mm", "r_hi_mm", "Rd_r", "Rd_r_stderr", "events"])
 """One row per radial bin."""
 
 BINS_SCHEMA = _schema(_KEYS + [
     "r_lo_mm", "r_hi_mm", "theta_s_lo", "theta_s_hi", "cos_theta_o_lo", "cos_theta_o_hi",
-    "phi_o_lo", "phi_o_hi", "G", "G_stderr", "S", "S_stderr",
+    "phi_o_lo", "phi_o_hi", "G", "G_stderr", "S", "S_stderr", "events",
 ])
 """One row per spatial x directional bin."""
 
 SUMMARY_SCHEMA = _schema(_KEYS + [
     "R_spec", "Rd", "Rd_stderr", "Rd_beyond_rmax", "Rd_beyond_rmax_stderr", "absorbed",
-    "absorbed_stderr", "truncated", "truncated_stderr", "photons",
+    "absorbed_stderr", "truncated", "truncated_stderr", "photons", "unresolved_bins",
 ])
 """One row per (estimator, incidence angle, channel, component)."""
 

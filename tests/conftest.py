@@ -37,9 +37,12 @@ class WalkStats:
         return float(sps.norm.isf(level / 2) if math.isinf(dof) else sps.t.isf(level / 2, dof))
 
     @staticmethod
-    def dof(result) -> int:
-        """Degrees of freedom of a merged result's standard errors: batches - 1."""
-        return int(result.k) - 1
+    def dof(result, name: str | None = None) -> int:
+        """Degrees of freedom of a merged result's standard errors (units - 1: photons - 1 or
+        batches - 1, workers.tally): of quantity `name`, or the fewest of any estimator."""
+        if name is not None:
+            return result.dof(name)
+        return min(result.dof(f"{e}/Rd") for e in result.estimators)
 
     @staticmethod
     def z(a, se_a, b, se_b=0.0) -> np.ndarray:

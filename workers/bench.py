@@ -1,6 +1,7 @@
 """`bssrdf bench` / `python -m workers.bench`: throughput of the walk.
 
-For the benchmark media of the engine issue, at normal incidence, each estimator alone:
+For the benchmark media of the engine issue, at normal incidence, each estimator alone (hybrid,
+the default; exits; connections):
 M1: sigma_t 10/mm, albedo 0.99, g 0.9, eta 1.3 (about 380 steps per photon);
 M2: sigma_t 1/mm, albedo 0.9, g 0, eta 1.0 (about 27.5 steps per photon).
 Prints photons/s, interaction steps (free-path samples) per second per core and per CPU-second,
@@ -24,7 +25,10 @@ MEDIA = {
     "M1": {"sigma_a": 0.1, "sigma_s": 9.9, "g": 0.9, "eta": 1.3},
     "M2": {"sigma_a": 0.1, "sigma_s": 0.9, "g": 0.0, "eta": 1.0},
 }
-DEFAULT_PHOTONS = {("M1", "exits"): 200_000, ("M2", "exits"): 2_000_000, ("M1", "connections"): 2_000, ("M2", "connections"): 20_000}
+DEFAULT_PHOTONS = {
+    ("M1", "hybrid"): 200_000, ("M2", "hybrid"): 2_000_000, ("M1", "exits"): 200_000, ("M2", "exits"): 2_000_000,
+    ("M1", "connections"): 2_000, ("M2", "connections"): 20_000,
+}  # fmt: skip
 
 
 def _spec(medium: str, estimator: str, photons: int, shards: int = 1) -> SimulationSpec:
@@ -92,7 +96,7 @@ def _at_least_one(text: str) -> int:
 
 def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--media", default="M1,M2", help="comma-separated subset of M1,M2")
-    p.add_argument("--estimators", default="exits,connections", help="comma-separated subset of exits,connections")
+    p.add_argument("--estimators", default="hybrid,exits,connections", help="comma-separated subset of hybrid,exits,connections")
     p.add_argument("--photons", type=int, help="photons per run (default: per medium and estimator)")
     p.add_argument("--threads", type=int, default=1, help="shards run concurrently, one worker process and core each (default 1)")
     p.add_argument("--repeat", type=_at_least_one, default=3, help="timed runs; the median is reported (default 3)")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["BinLayout", "wrap_angle", "edge_index", "uniform_index", "outgoing_azimuth"]
+__all__ = ["BinLayout", "wrap_angle", "uniform_index", "outgoing_azimuth"]
 
 TWO_PI = 2.0 * math.pi
 
@@ -31,17 +31,6 @@ def wrap_angle(a: torch.Tensor) -> torch.Tensor:
     return torch.where(a >= TWO_PI - _WRAP_SNAP, torch.zeros_like(a), a)
 
 
-def edge_index(value: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-    """Index k of the bin [edges[k], edges[k+1]) holding value, int64, clamped to the end bins.
-
-    Looking the value up in the stored edges (not floor((v - lo) / h)) keeps the lookup
-    consistent with the edges written to the tables: a value exactly on edge k is in bin k.  The
-    closed upper end (value == edges[-1], e.g. cos = 1) belongs to the last bin.
-    """
-    idx = torch.bucketize(value, edges.to(value.dtype), right=True) - 1
-    return torch.clamp(idx, 0, len(edges) - 2)
-
-
 def _uniform_edges(lo: float, hi: float, count: int) -> torch.Tensor:
     # The same construction as schema.uniform_edges, so the lookups match the tables' edges.
     edges = np.linspace(lo, hi, count + 1, dtype=np.float64)
@@ -54,7 +43,7 @@ def uniform_index(value: torch.Tensor, lo: float, hi: float, count: int) -> torc
 
     floor((v - lo) / h) may land one bin off the stored edges (schema.uniform_edges) when v is on
     or within rounding of an edge, so the guess is corrected against those edges: the result is
-    the bin [edges[k], edges[k+1]) that holds v, as :func:`edge_index` gives, without a search
+    the bin [edges[k], edges[k+1]) that holds v, as a search of the edges gives, without one
     (torch.bucketize does not fuse into compiled kernels).  Out-of-range values are clamped into
     the end bins; the closed upper end belongs to the last bin.
     """
@@ -102,9 +91,8 @@ class BinLayout:
     """Edges of every bin axis; radial edges per channel in mm.
 
     radial_mm: float64 [n_channels, n_r + 1]; theta_s, cos_o, phi_o: float64 1-D edge arrays.
-    The lookups below search the stored edges (searchsorted / bucketize): the plain reference
-    that the walk's fused lookups (:func:`uniform_index`, :mod:`workers.harvest`) are tested
-    against, and a convenience for binning events outside the walk.
+    The walk's lookups are :func:`uniform_index` and :mod:`workers.harvest`; the searched
+    reference they are tested against is in tests/reference/binning.py.
     """
 
     radial_mm: np.ndarray
@@ -141,20 +129,3 @@ class BinLayout:
     def solid_angle(self) -> np.ndarray:
         """Solid angle of each directional bin [n_cos, n_phi] in sr: dcos * dphi."""
         return np.outer(np.diff(self.cos_o), np.diff(self.phi_o))
-
-    def radial_index(self, r_mm: torch.Tensor, channel: torch.Tensor) -> torch.Tensor:
-        """Radial bin of r (mm) for each event's channel; n_r for r >= r_max (overflow)."""
-        edges = torch.as_tensor(self.radial_mm, dtype=r_mm.dtype)
-        # searchsorted(right) - 1 puts r in [edge_k, edge_k+1) into k; r >= r_max gives n_r.
-        idx = torch.searchsorted(edges[channel], r_mm.unsqueeze(-1), right=True).squeeze(-1) - 1
-        return torch.clamp(idx, 0, self.n_r)
-
-    def theta_index(self, theta_s: torch.Tensor) -> torch.Tensor:
-        """theta_s bin of an angle already wrapped into [0, 2 pi)."""
-        return edge_index(theta_s, torch.from_numpy(self.theta_s))
-
-    def cos_index(self, cos_o: torch.Tensor) -> torch.Tensor:
-        return edge_index(cos_o, torch.from_numpy(self.cos_o))
-
-    def phi_index(self, phi_o: torch.Tensor) -> torch.Tensor:
-        return edge_index(phi_o, torch.from_numpy(self.phi_o))

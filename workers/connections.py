@@ -17,8 +17,10 @@ Each sample contributes f / (q_u + q_p) to G of its spatial bin and of the bin o
 direction (balance heuristic, one sample per technique).  Since f / q_p = w albedo exp(-d) T21,
 every contribution is bounded by w * albedo: the estimator has finite variance, unlike uniform
 sampling alone (whose integrand grows like |z|/d^3 under a shallow vertex).  Outside the last
-radial edge only the phase technique samples, giving the flux beyond r_max.  S gets G / cos_o,
-divided by A Omega when results are formed.  Vertices after the first scattering contribute to
+radial edge only the phase technique samples, giving the flux beyond r_max.  S gets the same
+with T cos_in / cos_o in place of T cos_in (:func:`workers.optics.transmittance_cos_ratio`:
+bounded, and exactly 1 at eta = 1), divided by A Omega when results are formed; S = G / cos_o
+with a float cos_o that rounds to 0 at grazing angles blew up to 1e17-1e24 at eta = 1.  Vertices after the first scattering contribute to
 ``multiple``, the first to ``single``.
 """
 
@@ -32,7 +34,7 @@ import torch
 from .binning import TWO_PI, outgoing_azimuth, uniform_index, wrap_angle
 from .conventions import PURPOSE_CONNECT
 from .kernels import compile_kernel
-from .optics import fresnel_dielectric, hg_pdf, refracted_cos
+from .optics import fresnel_transmittance, hg_pdf, refracted_cos, transmittance_cos_ratio
 from .rng import philox4x32, uniform_halfopen
 
 __all__ = ["ConnectionGeometry", "connect_uniform", "connect_phase", "connection_function"]
@@ -100,11 +102,12 @@ def connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, c_lo, c_hi, draw,
     q_p = hg_pdf(mu, g[:, None]) * cos_in / d2
     # q_u = 1/(r dr dtheta) is infinite at r = 0: the clamp makes its MIS weight exactly 0 there.
     q_u = 1.0 / torch.clamp(r * dr * dtheta, min=1e-30)
-    transmit = 1.0 - fresnel_dielectric(cos_in, 1.0 / geo.eta)
-    G = (w * albedo)[:, None] * torch.exp(-d) * transmit * (q_p / (q_p + q_u))
-    cos_o, direction = _direction_bin(xo, yo, dx, dy, cos_in, geo)
-    # Under total internal reflection G = 0 and cos_o = 0: S is 0 there, not 0/0.
-    S = torch.where(G > 0, G / torch.clamp(cos_o, min=1e-30), torch.zeros_like(G))
+    # f / (q_u + q_p) to G; to S the same with T cos_in / cos_o for T cos_in (bounded, exactly 1
+    # at eta = 1 however grazing: no division by a cos_o that rounds to 0).
+    base = (w * albedo)[:, None] * torch.exp(-d) / (q_p + q_u)
+    G = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
+    S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (hg_pdf(mu, g[:, None]) / d2)
+    _, direction = _direction_bin(xo, yo, dx, dy, cos_in, geo)
     spatial = torch.arange(n_bins, dtype=torch.int64)[None, :].expand_as(direction)
     return G, S, spatial, direction
 
@@ -133,11 +136,12 @@ def connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo: Co
     mu = ux * vx + uy * vy + uz * vz
     q_p = hg_pdf(mu, g) * cos_in / (t * t)
     q_u = torch.where(inside, 1.0 / torch.clamp(r * dr * dtheta, min=1e-30), torch.zeros_like(r))
-    transmit = 1.0 - fresnel_dielectric(cos_in, 1.0 / geo.eta)
-    weight = torch.where(q_p > 0, q_p / (q_p + q_u), torch.zeros_like(q_p))
-    G = torch.where(up, w * albedo * torch.exp(-t) * transmit * weight, torch.zeros_like(w))
-    cos_o, direction = _direction_bin(xo, yo, vx, vy, cos_in, geo)
-    S = torch.where(G > 0, G / torch.clamp(cos_o, min=1e-30), torch.zeros_like(G))
+    # G = w albedo exp(-t) T q_p / (q_p + q_u); S the same with T cos_in / cos_o for T and
+    # q_p / cos_in = p / t^2 for q_p (see connect_uniform).
+    base = torch.where(up & (q_p > 0), w * albedo * torch.exp(-t) / torch.clamp(q_p + q_u, min=1e-30), torch.zeros_like(w))
+    G = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
+    S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (hg_pdf(mu, g) / (t * t))
+    _, direction = _direction_bin(xo, yo, vx, vy, cos_in, geo)
     spatial = ir * n_t + it
     return G, S, spatial, direction
 

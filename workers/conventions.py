@@ -27,7 +27,8 @@ Angles of a bin
 
 Components
     0 = ``single`` (exactly one scattering event before leaving), 1 = ``multiple`` (two or more);
-    ``total`` is their sum, formed per batch so its error bar keeps the covariance.
+    ``total`` is their sum, formed per photon (or per batch) before squaring, so its error bar
+    keeps the covariance (workers.tally).
 
 Random numbers
     Philox-4x32-10 (:mod:`workers.rng`), counter (photon low, photon high, draw, purpose), key from

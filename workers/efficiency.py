@@ -1,10 +1,13 @@
-"""`python -m workers.efficiency`: efficiency of the two estimators per radial bin.
+"""`python -m workers.efficiency`: efficiency of each estimator per radial bin.
 
-Efficiency = 1 / (variance x CPU seconds): the inverse of the CPU time needed for a unit variance.
-Each estimator runs alone on the same medium (M1 of the engine issue by default: sigma_t 10/mm,
-albedo 0.99, g 0.9, eta 1.3, normal incidence); the table lists, per radial bin, Rd(r) of each,
-their efficiencies for the multiple-scattering component and for single scattering, and the ratio
-connections / exits (> 1: connections win).
+Efficiency = 1 / (variance x CPU seconds): the inverse of the CPU time needed for a unit
+variance.  Each estimator (hybrid, the default; exits; connections) runs alone on the same medium
+(M1 of the engine issue by default: sigma_t 10/mm, albedo 0.99, g 0.9, eta 1.3; M2 with
+--medium M2) at the given incidence; the table lists, per radial bin and component (single,
+multiple), Rd(r) of each and their efficiencies, the ratio connections / exits (> 1:
+connections win) and the hybrid's efficiency over the better of the two (the bar: >= 0.5).
+Variances are per-photon for exits and hybrid, from 32 batches for connections (whose ratios
+therefore scatter by ~25 %).  A bin an estimator saw no event in has no efficiency (nan).
 """
 
 from __future__ import annotations
@@ -22,68 +25,80 @@ from schema import SimulationSpec
 from .bench import MEDIA
 from .simulate import simulate
 
-__all__ = ["efficiency", "main"]
+__all__ = ["ESTIMATORS", "efficiency", "main"]
+
+ESTIMATORS = ("hybrid", "exits", "connections")
 
 
-def _run(medium: str, estimator: str, photons: int, radial: dict) -> tuple[object, float]:
+def _run(medium: str, estimator: str, photons: int, radial: dict, incidence: float) -> tuple[object, float]:
     spec = SimulationSpec.model_validate({
         "name": f"eff-{medium}-{estimator}", "medium": MEDIA[medium], "photons": photons, "shards": 4,
         "batches_per_shard": 8, "estimator": estimator, "seed": 11, "bins": {"radial": radial},
+        "incidence_deg": [incidence],
     })  # fmt: skip
-    simulate(spec.model_copy(update={"photons": 64, "shards": 2, "batches_per_shard": 1}), threads=1)  # compile
+    # Compile first, on shards with the same batch count (the batch starts are a kernel argument:
+    # another count would compile new kernels inside the timed run) and a different seed.
+    simulate(spec.model_copy(update={"photons": 4 * 64, "seed": 12}), threads=1)
     cpu0 = time.process_time()
     result = simulate(spec, threads=1)
     return result, time.process_time() - cpu0
 
 
-def efficiency(medium: str, photons_exits: int, photons_connections: int, radial: dict) -> list[dict]:
-    """Per radial bin: Rd(r) and efficiency of each estimator, for single and multiple."""
+def efficiency(medium: str, photons: dict[str, int], radial: dict, incidence: float = 0.0) -> list[dict]:
+    """Per radial bin and component: Rd(r) and efficiency of each estimator; last row the run facts."""
     torch.set_num_threads(1)
-    rows = []
-    res_e, cpu_e = _run(medium, "exits", photons_exits, radial)
-    res_c, cpu_c = _run(medium, "connections", photons_connections, radial)
-    edges = res_e.layout.radial_mm[0]
+    runs = {est: _run(medium, est, photons[est], radial, incidence) for est in ESTIMATORS}
+    first = runs["exits"][0]
+    edges = first.layout.radial_mm[0]
     area = np.pi * (edges[1:] ** 2 - edges[:-1] ** 2)
-    n_r = res_e.layout.n_r
+    n_r = first.layout.n_r
+    rows = []
     for k, comp in ((0, "single"), (1, "multiple")):
-        m_e, se_e = res_e.mean("exits/radial_G")[0, k, :n_r], res_e.stderr("exits/radial_G")[0, k, :n_r]
-        m_c, se_c = res_c.mean("connections/radial_G")[0, k, :n_r], res_c.stderr("connections/radial_G")[0, k, :n_r]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            eff_e = 1.0 / (se_e**2 * cpu_e)
-            eff_c = 1.0 / (se_c**2 * cpu_c)
+        m, eff = {}, {}
+        for est, (res, cpu) in runs.items():
+            m[est] = res.mean(f"{est}/radial_G")[0, k, :n_r] / area
+            se = res.stderr(f"{est}/radial_G")[0, k, :n_r]  # NaN where no event: no efficiency
+            with np.errstate(divide="ignore", invalid="ignore"):
+                eff[est] = np.where(se > 0, 1.0 / (se**2 * cpu), np.nan)
         for i in range(n_r):
+            e = {est: float(eff[est][i]) for est in ESTIMATORS}
+            best = np.nanmax([e["exits"], e["connections"]]) if np.isfinite([e["exits"], e["connections"]]).any() else np.nan
             rows.append({
-                "component": comp, "r_lo_mm": edges[i], "r_hi_mm": edges[i + 1],
-                "Rd_r_exits": m_e[i] / area[i], "Rd_r_connections": m_c[i] / area[i],
-                "eff_exits": float(eff_e[i]), "eff_connections": float(eff_c[i]),
-                # Undefined where an estimator saw no event (zero variance of a zero estimate).
-                "ratio": float(eff_c[i] / eff_e[i]) if np.isfinite(eff_c[i]) and np.isfinite(eff_e[i]) else float("nan"),
+                "component": comp, "r_lo_mm": float(edges[i]), "r_hi_mm": float(edges[i + 1]),
+                **{f"Rd_r_{est}": float(m[est][i]) for est in ESTIMATORS}, **{f"eff_{est}": e[est] for est in ESTIMATORS},
+                "ratio": e["connections"] / e["exits"],  # nan where either saw no event
+                "ratio_hybrid": e["hybrid"] / best if np.isfinite(best) else float("nan"),
             })  # fmt: skip
-    rows.append({"cpu_s_exits": cpu_e, "cpu_s_connections": cpu_c, "photons_exits": photons_exits, "photons_connections": photons_connections})
+    rows.append({**{f"cpu_s_{est}": cpu for est, (_, cpu) in runs.items()}, **{f"photons_{est}": photons[est] for est in ESTIMATORS},
+                 "medium": medium, "incidence_deg": incidence})  # fmt: skip
     return rows
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m workers.efficiency", description=__doc__)
     p.add_argument("--medium", default="M1", choices=sorted(MEDIA))
+    p.add_argument("--incidence", type=float, default=0.0, help="incidence angle in degrees (default 0)")
     p.add_argument("--photons-exits", type=int, default=200_000)
+    p.add_argument("--photons-hybrid", type=int, default=200_000)
     p.add_argument("--photons-connections", type=int, default=4_000)
     p.add_argument("--radial-count", type=int, default=16)
     p.add_argument("--max-mm", type=float, default=2.0)
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
     radial = {"count": a.radial_count, "max_mm": a.max_mm, "spacing": "log", "min_fraction": 0.01}
-    rows = efficiency(a.medium, a.photons_exits, a.photons_connections, radial)
+    photons = {"exits": a.photons_exits, "hybrid": a.photons_hybrid, "connections": a.photons_connections}
+    rows = efficiency(a.medium, photons, radial, a.incidence)
     if a.json:
         print(json.dumps(rows))
         return 0
     info = rows.pop()
-    print(f"{a.medium}: exits {info['photons_exits']} photons in {info['cpu_s_exits']:.1f} CPU-s, "
-          f"connections {info['photons_connections']} photons in {info['cpu_s_connections']:.1f} CPU-s")  # fmt: skip
-    print(f"{'component':<9} {'r_lo':>7} {'r_hi':>7} {'Rd_r exits':>11} {'Rd_r conn':>11} {'eff exits':>10} {'eff conn':>10} {'conn/exits':>10}")
+    print(f"{a.medium}, incidence {a.incidence:g} deg: " + ", ".join(f"{est} {info[f'photons_{est}']} photons in {info[f'cpu_s_{est}']:.1f} CPU-s" for est in ESTIMATORS))
+    print(f"{'component':<9} {'r_lo':>7} {'r_hi':>7} {'Rd_r hybrid':>11} {'Rd_r exits':>11} {'Rd_r conn':>11} "
+          f"{'eff hybrid':>10} {'eff exits':>10} {'eff conn':>10} {'conn/exits':>10} {'hyb/best':>9}")  # fmt: skip
     for r in rows:
-        print(f"{r['component']:<9} {r['r_lo_mm']:>7.4f} {r['r_hi_mm']:>7.4f} {r['Rd_r_exits']:>11.4g} {r['Rd_r_connections']:>11.4g} "
-              f"{r['eff_exits']:>10.3g} {r['eff_connections']:>10.3g} {r['ratio']:>10.3g}")  # fmt: skip
+        print(f"{r['component']:<9} {r['r_lo_mm']:>7.4f} {r['r_hi_mm']:>7.4f} {r['Rd_r_hybrid']:>11.4g} {r['Rd_r_exits']:>11.4g} "
+              f"{r['Rd_r_connections']:>11.4g} {r['eff_hybrid']:>10.3g} {r['eff_exits']:>10.3g} {r['eff_connections']:>10.3g} "
+              f"{r['ratio']:>10.3g} {r['ratio_hybrid']:>9.3g}")  # fmt: skip
     return 0
 
 

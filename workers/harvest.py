@@ -15,6 +15,19 @@ the tables' edges are:
   branchless binary search (:func:`count_le`);
 - theta_s, cos_o, phi_o: uniform bins, :func:`workers.binning.uniform_index`.
 
+S of an exit, w / cos_o, is unbiased for the bin's BSSRDF averaged over dA d(omega) (the flux
+through a bin is the integral of L cos_o, so the integral of L is the sum of w / cos_o), and has
+a finite variance except in one case: at eta = 1 the exits' density in cos_o is ~ cos_o near
+grazing (the radiance is finite there), so in the lowest cos bin E[(w / cos_o)^2] ~ int dc / c
+diverges logarithmically (for eta > 1 the transmittance vanishes like cos_o and the density goes
+like cos_o^2: finite).  It is kept: the estimate is unbiased and, its truncated second moment
+being slowly varying (~ ln N), in the normal domain of attraction, where the per-photon standard
+error is asymptotically exact (Gine, Goetze and Mason 1997: the self-normalised sum converges to
+N(0, 1)); convergence is sqrt(ln N / N) rather than 1 / sqrt(N).  A bounded alternative such as
+G / (A * projected solid angle) estimates another quantity (S averaged with weight cos_o) and is
+biased for this one wherever the radiance varies over the bin.  tests/workers/test_walk_exact.py
+checks S per (r, cos_o) bin, the grazing bin at eta = 1 included, against the quadrature.
+
 Every finished photon (exited, absorbed or truncated) is then recorded and its lane refilled by
 :func:`finish_and_refill`, one pass over the lanes: per lane a (batch, configuration) key and the
 absorbed and truncated weights, whose float sums the caller forms with an ordered bincount."""

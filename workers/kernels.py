@@ -46,7 +46,7 @@ __all__ = ["GRAPH_MODULES", "artifact_key", "cache_dir", "compile_kernel", "sour
 log = logging.getLogger(__name__)
 
 # Modules of this package whose code ends up in a compiled graph (tests check the import closure).
-GRAPH_MODULES = ("walk", "connections", "harvest", "optics", "rng", "binning", "conventions")
+GRAPH_MODULES = ("walk", "connections", "hybrid", "harvest", "optics", "rng", "binning", "conventions")
 
 _compile_lock = threading.Lock()  # one compile at a time per process (threads sharing a kernel)
 

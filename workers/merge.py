@@ -13,7 +13,7 @@ from schema import SimulationSpec
 
 from .binning import BinLayout
 from .shard import Configs, bin_layout, build_configs
-from .tally import ShardTally
+from .tally import ShardTally, units_name
 
 __all__ = ["Result", "Fold", "merge", "MergeError"]
 
@@ -34,9 +34,8 @@ class Result:
     configs: Configs
     layout: BinLayout
     stats: dict[str, list[np.ndarray]]
+    counts: dict[str, np.ndarray]
     n_sum: int
-    nn_sum: int
-    k: int
     shard_info: list[dict] = field(default_factory=list)
     medium_index: int = 0  # index of the medium in its job (schema.media); 0 for a single medium
     target: object | None = None  # workers.target.TargetStatus of a run to a target error
@@ -48,12 +47,28 @@ class Result:
     def mean(self, name: str) -> np.ndarray:
         return self.stats[name][0] / self.n_sum
 
+    def units(self, name: str) -> tuple[int, int]:
+        """(K, NN) of the units quantity `name`'s standard error comes from (workers.tally)."""
+        k, nn = self.counts[units_name(name.split("/")[0])]
+        return int(k), int(nn)
+
+    def dof(self, name: str) -> int:
+        """Degrees of freedom of stderr(name): units - 1 (photons - 1, or batches - 1)."""
+        return self.units(name)[0] - 1
+
+    def events(self, name: str) -> np.ndarray:
+        """Contributing events per entry of `name` (int64)."""
+        return self.counts[name]
+
     def stderr(self, name: str) -> np.ndarray:
+        """Standard error per entry; NaN where no event contributed (no error bar, not 0)."""
         s1, s2, sxn = self.stats[name]
+        k, nn = self.units(name)
         m = s1 / self.n_sum
         # Sum of squared residuals x_k - m n_k; clamp the tiny negative values rounding can leave.
-        ss = np.maximum(s2 - 2.0 * m * sxn + m * m * self.nn_sum, 0.0)
-        return np.sqrt(self.k / (self.k - 1) * ss) / self.n_sum
+        ss = np.maximum(s2 - 2.0 * m * sxn + m * m * nn, 0.0)
+        se = np.sqrt(k / (k - 1) * ss) / self.n_sum
+        return np.where(self.counts[name] > 0, se, np.nan)
 
 
 class Fold:
@@ -69,7 +84,8 @@ class Fold:
     def __init__(self, spec: SimulationSpec, medium_index: int = 0):
         self.spec, self.medium_index = spec, medium_index
         self.stats: dict[str, list[np.ndarray]] = {}
-        self.n_sum = self.nn_sum = self.k = 0
+        self.counts: dict[str, np.ndarray] = {}
+        self.n_sum = 0
         self.shard_info: list[dict] = []
 
     @property
@@ -88,15 +104,16 @@ class Fold:
             raise MergeError(f"shards fold in order: expected shard {self.shards} of {self.spec.shards}, received {tally.shard_index}")
         if not self.stats:
             self.stats = {name: [a.copy() for a in tally.stats[name]] for name in sorted(tally.stats)}
-        elif set(tally.stats) != set(self.stats):
+            self.counts = {name: tally.counts[name].copy() for name in sorted(tally.counts)}
+        elif set(tally.stats) != set(self.stats) or set(tally.counts) != set(self.counts):
             raise MergeError(f"shard {tally.shard_index} has quantities {sorted(tally.stats)}, expected {sorted(self.stats)}")
         else:
             for name, acc in self.stats.items():
                 for a, part in zip(acc, tally.stats[name]):
                     a += part
+            for name, acc in self.counts.items():
+                acc += tally.counts[name]
         self.n_sum += tally.n_sum
-        self.nn_sum += tally.nn_sum
-        self.k += tally.k
         self.shard_info.append(dict(tally.info, shard_index=tally.shard_index))
 
     def result(self) -> Result:
@@ -106,22 +123,22 @@ class Fold:
             raise MergeError("no shard folded yet")
         return Result(
             spec=self.spec, configs=build_configs(self.spec), layout=bin_layout(self.spec), stats=self.stats,
-            n_sum=self.n_sum, nn_sum=self.nn_sum, k=self.k, shard_info=list(self.shard_info),
+            counts=self.counts, n_sum=self.n_sum, shard_info=list(self.shard_info),
             medium_index=self.medium_index,
         )  # fmt: skip
 
     def state(self) -> ShardTally:
         """The fold as a ShardTally (``shard_index`` = shards folded; info holds the shards' info),
         to save with :meth:`ShardTally.to_bytes`."""
-        return ShardTally(self.shards, self.stats, self.n_sum, self.nn_sum, self.k,
+        return ShardTally(self.shards, self.stats, self.counts, self.n_sum,
                           {"shard_info": self.shard_info, "medium_index": self.medium_index})
 
     @classmethod
     def from_state(cls, spec: SimulationSpec, state: ShardTally) -> "Fold":
         """The fold saved by :meth:`state`."""
         fold = cls(spec, int(state.info["medium_index"]))
-        fold.stats = state.stats
-        fold.n_sum, fold.nn_sum, fold.k = state.n_sum, state.nn_sum, state.k
+        fold.stats, fold.counts = state.stats, state.counts
+        fold.n_sum = state.n_sum
         fold.shard_info = list(state.info["shard_info"])
         if fold.shards != state.shard_index:
             raise MergeError(f"fold state says {state.shard_index} shards but lists {fold.shards}")

@@ -18,6 +18,8 @@ __all__ = [
     "sample_hg",
     "fresnel_dielectric",
     "refracted_cos",
+    "fresnel_transmittance",
+    "transmittance_cos_ratio",
     "scatter_direction",
     "incident_refracted_direction",
 ]
@@ -129,10 +131,54 @@ def fresnel_dielectric(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.
 def refracted_cos(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.Tensor:
     """Cosine of the refracted direction, Snell's law: sqrt(1 - (1 - cos_i^2) / eta^2).
 
-    eta = n_transmitted / n_incident; 0 where the ray is totally internally reflected.
+    eta = n_transmitted / n_incident; 0 where the ray is totally internally reflected.  Computed
+    as sqrt((eta^2 - 1 + cos_i^2) / eta^2): at eta = 1 that is exactly |cos_i| (the form
+    1 - (1 - cos_i^2) rounds to 0 for cos_i below ~2e-4 in float32, 1e-8 in float64, which made
+    grazing exits look totally reflected while their transmittance was 1).
     """
-    sin2_t = (1.0 - cos_i * cos_i) / (eta * eta)
-    return torch.sqrt(torch.clamp(1.0 - sin2_t, min=0.0))
+    cos2_t = (eta * eta - 1.0 + cos_i * cos_i) / (eta * eta)
+    return torch.sqrt(torch.clamp(cos2_t, min=0.0))
+
+
+def _cos_t_and_ratio(cos_i: torch.Tensor, eta: torch.Tensor | float):
+    """(cos_t, 2 eta [1 / (cos_i + eta cos_t)^2 + 1 / (eta cos_i + cos_t)^2]); see below."""
+    cos_i = torch.clamp(cos_i, 0.0, 1.0)
+    cos_t = refracted_cos(cos_i, eta)
+    a = cos_i + eta * cos_t
+    b = eta * cos_i + cos_t
+    # a, b > 0 except at cos_i = cos_t = 0 (eta = 1, grazing), handled by the callers.
+    return cos_i, cos_t, 2.0 * eta * (1.0 / torch.clamp(a * a, min=1e-30) + 1.0 / torch.clamp(b * b, min=1e-30))
+
+
+def fresnel_transmittance(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.Tensor:
+    """Unpolarised Fresnel transmittance T = 1 - Fr, formed without the cancellation of 1 - Fr.
+
+    With t_s = 1 - r_s^2 = 4 eta cos_i cos_t / (cos_i + eta cos_t)^2 and
+    t_p = 1 - r_p^2 = 4 eta cos_i cos_t / (eta cos_i + cos_t)^2 (r_s, r_p as in
+    :func:`fresnel_dielectric`), T = (t_s + t_p) / 2; 0 under total internal reflection, 1 at
+    eta = 1.  Accurate where T is small (near the critical angle), where 1 - Fr keeps only the
+    rounding of Fr.
+    """
+    if isinstance(eta, (int, float)) and eta == 1.0:
+        return torch.ones_like(cos_i)  # no interface
+    cos_i, cos_t, k = _cos_t_and_ratio(cos_i, eta)
+    return cos_i * cos_t * k
+
+
+def transmittance_cos_ratio(cos_i: torch.Tensor, eta: torch.Tensor | float) -> torch.Tensor:
+    """T cos_i / cos_t, the factor that turns a transmitted flux into radiance, bounded.
+
+    A flux f ~ T cos_i (per unit area, per unit solid angle inside) crossing the interface leaves
+    as radiance f / cos_t outside; T / cos_t stays finite where cos_t -> 0 (T vanishes like
+    cos_t at the critical angle), and at eta = 1 the ratio is exactly 1, however grazing:
+        T cos_i / cos_t = 2 eta cos_i^2 [1 / (cos_i + eta cos_t)^2 + 1 / (eta cos_i + cos_t)^2].
+    0 under total internal reflection.  Dividing G by a float cos_o instead gave S = 1e17-1e24
+    in the grazing bin at eta = 1, where float32 cos_o rounded to 0.
+    """
+    if isinstance(eta, (int, float)) and eta == 1.0:
+        return torch.ones_like(cos_i)  # no interface: the radiance crosses unchanged
+    cos_i, cos_t, k = _cos_t_and_ratio(cos_i, eta)
+    return torch.where(cos_t > 0.0, cos_i * cos_i * k, torch.zeros_like(k))
 
 
 def scatter_direction(

@@ -19,6 +19,7 @@ from schema import BINS_SCHEMA, RADIAL_SCHEMA, SUMMARY_SCHEMA, table_metadata
 from schema.version import code_version
 
 from .merge import Result
+from .tally import BATCH_ESTIMATORS
 
 __all__ = [
     "radial_table", "bins_table", "summary_table", "summary_rows", "summary", "summary_head", "run_facts",
@@ -66,6 +67,7 @@ def radial_table(result: Result) -> pa.Table:
         cols["r_hi_mm"] += edges[1:].tolist()
         cols["Rd_r"] += (m / area).tolist()
         cols["Rd_r_stderr"] += (se / area).tolist()
+        cols["events"] += result.events(f"{est}/radial_G")[cfg, k, :n_r].tolist()
     return pa.Table.from_pydict(cols, schema=RADIAL_SCHEMA)
 
 
@@ -91,6 +93,7 @@ def bins_table(result: Result) -> pa.Table:
             "cos_theta_o_lo": L.cos_o[c_i], "cos_theta_o_hi": L.cos_o[c_i + 1],
             "phi_o_lo": L.phi_o[p_i], "phi_o_hi": L.phi_o[p_i + 1],
             "G": g, "G_stderr": g_se, "S": s, "S_stderr": s_se,
+            "events": result.events(f"{est}/bins_G")[cfg, k, :n_r].reshape(-1),
         })  # fmt: skip
     cols = {f.name: list(itertools.chain.from_iterable(np.asarray(p[f.name]).tolist() for p in parts)) for f in BINS_SCHEMA}
     return pa.Table.from_pydict(cols, schema=BINS_SCHEMA)
@@ -113,6 +116,7 @@ def summary_rows(result: Result) -> list[dict]:
             "truncated": float(result.mean("walk/truncated")[cfg]),
             "truncated_stderr": float(result.stderr("walk/truncated")[cfg]),
             "photons": int(result.n_sum),
+            "unresolved_bins": int(np.sum(result.events(f"{est}/bins_G")[cfg, k, :n_r] == 0)),
         })  # fmt: skip
     return rows
 
@@ -141,7 +145,8 @@ def run_facts(result: Result) -> dict:
         "rng": RNG_FACT,
         "photons_per_config": int(result.n_sum),
         "shards": len(result.shard_info),  # the first K shards of a run to a target error
-        "batches": int(result.k),
+        "standard_errors": {e: ("batches" if e in BATCH_ESTIMATORS else "photons") for e in result.estimators},
+        "error_units": {e: result.units(f"{e}/Rd")[0] for e in result.estimators},  # photons or batches behind each error
         "seed": result.spec.seed,
         "channels": [c.model_dump() for c in result.spec.channels()],
         "eta": result.configs.eta,
@@ -152,7 +157,12 @@ def run_facts(result: Result) -> dict:
 
 def summary(result: Result) -> dict:
     """The summary printed by `bssrdf simulate --json` and stored as summary.json."""
-    return summary_head(result.spec, run_facts(result), **target_entry(result)) | {"results": summary_rows(result)}
+    return summary_head(result.spec, run_facts(result), **target_entry(result)) | {"results": [json_row(r) for r in summary_rows(result)]}
+
+
+def json_row(row: dict) -> dict:
+    """A summary row for JSON: a NaN standard error (no event) becomes null."""
+    return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in row.items()}
 
 
 def summary_head(spec, run: dict, **extra) -> dict:
@@ -219,7 +229,7 @@ def _write_summary_json(f, head: dict, rows) -> None:
     before, after = text.split('"results": []', 1)
     f.write((before + '"results": [').encode())
     for i, row in enumerate(rows):
-        body = json.dumps(row, indent=2, sort_keys=True).replace("\n", "\n    ")
+        body = json.dumps(json_row(row), indent=2, sort_keys=True).replace("\n", "\n    ")
         f.write(((",\n    " if i else "\n    ") + body).encode())
     f.write(("\n  ]" + after + "\n").encode())
 

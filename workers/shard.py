@@ -25,10 +25,11 @@ from .engine import init_engine
 from .harvest import ExitBins, exit_function, finish_function
 from .optics import fresnel_dielectric, incident_refracted_direction
 from .rng import photon_words, stream_key, to_i32
-from .tally import BatchAccumulator, ShardTally
+from .hybrid import K_SAMPLES, EntryLayout, FirstVertexGeometry, entries_function
+from .tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally, TallyLayout
 from .walk import EMPTY, EXITED, RUNNING, ConfigTable, Lanes, WalkParams, compile_enabled, step_function
 
-__all__ = ["run_shard", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
+__all__ = ["run_shard", "ShardPlan", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
 
 CHUNK = 1 << 14  # lanes per call of the compiled step (one static shape for every shard); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
@@ -104,55 +105,117 @@ def chunk_count(n_launch: int, chunk: int) -> int:
     return int(min(MAX_CHUNKS, max(1, math.ceil(n_launch / (PHOTONS_PER_LANE * chunk)))))
 
 
+@dataclass(frozen=True)
+class ShardPlan:
+    """Everything fixed about running shard `shard_index` of `spec`, built once (:meth:`build`).
+
+    estimators: what is tallied ("exits", "connections", "hybrid"); connect: vertices are
+    connected to every bin (1 step per call); exits: exit events are binned (exit tally or the
+    hybrid's multiple scattering); first_vertex: the hybrid's first-vertex connections.
+    chunk / n_lanes: lanes per step call and in all; tail_chunk: lanes of the shard's tail
+    (None: no tail chunk); n_steps: steps per call.
+    """
+
+    spec: SimulationSpec
+    shard_index: int
+    cfgs: Configs
+    layout: BinLayout
+    start: int
+    stop: int
+    estimators: tuple[str, ...]
+    compiled: bool
+    chunk: int
+    n_lanes: int
+    tail_chunk: int | None
+    params: WalkParams
+    n_steps: int
+    geo: ConnectionGeometry
+    exit_bins: ExitBins
+    first_vertex: FirstVertexGeometry | None
+    entry_layout: EntryLayout
+
+    @property
+    def n_launch(self) -> int:
+        """Photons of the shard, all configurations."""
+        return (self.stop - self.start) * self.cfgs.n
+
+    @property
+    def connect(self) -> bool:
+        return "connections" in self.estimators
+
+    @property
+    def exits(self) -> bool:
+        return "exits" in self.estimators or "hybrid" in self.estimators
+
+    @classmethod
+    def build(cls, spec: SimulationSpec, shard_index: int) -> "ShardPlan":
+        cfgs, layout = build_configs(spec), bin_layout(spec)
+        start, stop = spec.shard_photon_range(shard_index)
+        estimators = ("exits", "connections") if spec.estimator == "both" else (spec.estimator,)
+        compiled = compile_enabled()
+        connect = "connections" in estimators
+        chunk = CONNECT_CHUNK if connect else CHUNK if compiled else EAGER_CHUNK
+        abs_g = np.abs(cfgs.table.g.numpy())
+        params = WalkParams(
+            inv_eta=1.0 / cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
+            hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed",
+        )  # fmt: skip
+        sigma_t = torch.tensor(cfgs.sigma_t, dtype=torch.float64)
+        radial_mm = torch.from_numpy(layout.radial_mm[[cfgs.channel_of(c) for c in range(cfgs.n)]])  # [cfg, n_r + 1]
+        edges_opt = radial_mm * sigma_t[:, None]
+        counts = dict(n_theta=layout.n_theta, n_cos=layout.n_cos, n_phi=layout.n_phi)
+        geo = ConnectionGeometry(
+            r_lo=edges_opt[:, :-1].to(torch.float32).contiguous(), r_hi=edges_opt[:, 1:].to(torch.float32).contiguous(), eta=cfgs.eta, **counts,
+        )  # fmt: skip
+        starts = torch.tensor([a for a, _ in spec.batch_photon_ranges(shard_index)], dtype=torch.int64)
+        exit_bins = ExitBins(radial_mm=radial_mm, sigma_t=sigma_t, batch_starts=starts, inv_eta=params.inv_eta, **counts)
+        first_vertex = None
+        if "hybrid" in estimators:
+            t = cfgs.table
+            first_vertex = FirstVertexGeometry(
+                edges=edges_opt.to(torch.float32).contiguous(), u0x=t.ux0, u0z=t.uz0, w0=t.w0, albedo=t.albedo,
+                g=t.g, k0=t.k0, k1=t.k1, eta=cfgs.eta, k=min(K_SAMPLES, layout.n_r * layout.n_theta), hg_branch=params.hg_branch, **counts,
+            )  # fmt: skip
+        n_lanes = chunk_count((stop - start) * cfgs.n, chunk) * chunk
+        n_sp, n_dir = (layout.n_r + 1) * layout.n_theta, layout.n_cos * layout.n_phi
+        offsets = tuple(int(o) for o in TallyLayout(cfgs.n, layout.shape).square_offsets[:4])
+        entry_layout = EntryLayout(n_sp=n_sp, n_dir=n_dir, n_theta=layout.n_theta, square_offsets=offsets)
+        return cls(
+            spec=spec, shard_index=shard_index, cfgs=cfgs, layout=layout, start=start, stop=stop, estimators=estimators,
+            compiled=compiled, chunk=chunk, n_lanes=n_lanes,
+            # A step costs the same for idle lanes: a shard's last photons, the longest paths, are
+            # stepped in one short chunk (compiled: a second shape) once they fit.  Not with
+            # connections, whose chunks are short already and whose kernel dominates.
+            tail_chunk=None if connect else chunk // TAIL_DIVISOR,
+            params=params, n_steps=1 if connect else EXIT_STEPS_PER_CALL, geo=geo, exit_bins=exit_bins, first_vertex=first_vertex,
+            entry_layout=entry_layout,
+        )  # fmt: skip
+
+
 class _Runner:
     """The mutable bookkeeping of one shard run (kept out of the pure entry point)."""
 
-    def __init__(self, spec: SimulationSpec, shard_index: int, progress: Callable[[int], None] | None):
-        self.spec = spec
-        self.cfgs = build_configs(spec)
-        self.layout = bin_layout(spec)
-        self.start, self.stop = spec.shard_photon_range(shard_index)
-        self.n_launch = (self.stop - self.start) * self.cfgs.n
-        self.next_launch = 0
+    def __init__(self, plan: ShardPlan, progress: Callable[[int], None] | None):
+        self.plan = plan
         self.progress = progress
-        self.estimators = ["exits", "connections"] if spec.estimator == "both" else [spec.estimator]
-        self.acc = BatchAccumulator(self.estimators, self.cfgs.n, self.layout.shape, spec.batch_photon_ranges(shard_index))
-        self.compiled = compile_enabled()
-        self.connect = "connections" in self.estimators
-        self.chunk = CONNECT_CHUNK if self.connect else CHUNK if self.compiled else EAGER_CHUNK
-        self.lanes = Lanes.empty(chunk_count(self.n_launch, self.chunk) * self.chunk)
+        spec, cfgs = plan.spec, plan.cfgs
+        self.next_launch = 0
+        batch_estimators = [e for e in plan.estimators if e in BATCH_ESTIMATORS]
+        photon_estimators = [e for e in plan.estimators if e not in BATCH_ESTIMATORS]
+        self.acc = BatchAccumulator(batch_estimators, cfgs.n, plan.layout.shape, spec.batch_photon_ranges(plan.shard_index))
+        self.photons = PhotonAccumulator(photon_estimators, cfgs.n, plan.layout.shape)
+        self.chunk = plan.chunk
+        self.lanes = Lanes.empty(plan.n_lanes)
         self.lanes_list = self.lanes.tensors()
-        self.chunks = [[t[a : a + self.chunk] for t in self.lanes_list] for a in range(0, len(self.lanes.status), self.chunk)]
+        self.chunks = [[t[a : a + self.chunk] for t in self.lanes_list] for a in range(0, plan.n_lanes, self.chunk)]
         self.active = len(self.chunks)  # chunks [0, active) hold every running lane
-        # A step costs the same for idle lanes: a shard's last photons, the longest paths, are
-        # stepped in one short chunk (compiled: a second shape) once they fit.  Not with
-        # connections, whose chunks are short already and whose kernel dominates.
-        self.tail_chunk = None if self.connect else self.chunk // TAIL_DIVISOR
         self.tail_lanes = None  # photons still running when the tail chunk took over
-        self.table_tensors = self.cfgs.table.tensors()
-        abs_g = np.abs(self.cfgs.table.g.numpy())
-        self.params = WalkParams(
-            inv_eta=1.0 / self.cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
-            hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed",
-        )  # fmt: skip
-        n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
-        self.step = step_function(self.params, n_steps, self.connect, self.compiled)
-        self.finish_fn = finish_function(self.compiled)
-        self.connect_fn = connection_function(self.compiled)
-        self.sigma_t = torch.tensor(self.cfgs.sigma_t, dtype=torch.float64)
-        radial_mm = torch.from_numpy(self.layout.radial_mm[[self.cfgs.channel_of(c) for c in range(self.cfgs.n)]])  # [cfg, n_r + 1]
-        edges_opt = radial_mm * self.sigma_t[:, None]
-        self.geo = ConnectionGeometry(
-            r_lo=edges_opt[:, :-1].to(torch.float32).contiguous(), r_hi=edges_opt[:, 1:].to(torch.float32).contiguous(),
-            n_theta=self.layout.n_theta, n_cos=self.layout.n_cos, n_phi=self.layout.n_phi, eta=self.cfgs.eta,
-        )  # fmt: skip
-        self.tally_exit_events = "exits" in self.estimators
-        self.batch_starts = torch.from_numpy(self.acc.starts)  # first photon of each batch
-        self.exit_fn = exit_function(self.compiled)
-        self.exit_bins = ExitBins(
-            radial_mm=radial_mm, sigma_t=self.sigma_t, batch_starts=self.batch_starts,
-            n_theta=self.layout.n_theta, n_cos=self.layout.n_cos, n_phi=self.layout.n_phi, inv_eta=self.params.inv_eta,
-        )  # fmt: skip
+        self.table_tensors = cfgs.table.tensors()
+        self.step = step_function(plan.params, plan.n_steps, plan.connect, plan.compiled)
+        self.finish_fn = finish_function(plan.compiled)
+        self.connect_fn = connection_function(plan.compiled)
+        self.exit_fn = exit_function(plan.compiled)
+        self.entries_fn = entries_function(plan.compiled)
         self.vertex_buf: list[list[torch.Tensor]] = []
         self.vertex_count = 0
         self.steps = 0  # calls x steps per call
@@ -165,22 +228,28 @@ class _Runner:
         launch the next photons into the lanes not running, in lane order; returns (photons
         finished, photons launched).  One pass over all the lanes (one compiled shape per lane
         count): in the tail, where only the first chunk runs, the rest are EMPTY and cost little."""
-        launch = torch.tensor([self.start, self.next_launch, self.n_launch, self.cfgs.n], dtype=torch.int64)
-        key, absorbed, truncated, n_free, steps = self.finish_fn(self.lanes_list, self.table_tensors, launch, self.batch_starts)
-        launched = min(int(n_free), self.n_launch - self.next_launch)
+        plan = self.plan
+        launch = torch.tensor([plan.start, self.next_launch, plan.n_launch, plan.cfgs.n], dtype=torch.int64)
+        key, absorbed, truncated, n_free, steps = self.finish_fn(self.lanes_list, self.table_tensors, launch, plan.exit_bins.batch_starts)
+        launched = min(int(n_free), plan.n_launch - self.next_launch)
         self.next_launch += launched
         self.photon_steps += int(steps)
-        finished = self.acc.finish_photons(key.numpy(), absorbed.numpy(), truncated.numpy()) if int(steps) else 0
-        return finished, launched
+        if not int(steps):
+            return 0, launched
+        key = key.numpy()
+        done = key < len(self.acc.sizes) * plan.cfgs.n
+        self.photons.add_walk(key[done] % plan.cfgs.n, absorbed.numpy()[done], truncated.numpy()[done])
+        return self.acc.finish_photons(key), launched
 
     def shrinkable(self, running: int) -> bool:
         """Whether compact() would step fewer lanes: nothing is left to launch and the running
         lanes fit in fewer chunks, or in the tail chunk."""
-        if self.next_launch < self.n_launch:
+        if self.next_launch < self.plan.n_launch:
             return False
         if running <= (self.active - 1) * self.chunk:
             return True
-        return self.tail_chunk is not None and self.chunk != self.tail_chunk and running <= self.tail_chunk
+        tail = self.plan.tail_chunk
+        return tail is not None and self.chunk != tail and running <= tail
 
     def compact(self, running: int) -> None:
         """Tail of the shard (nothing left to launch): move the running lanes, in lane order, to
@@ -193,17 +262,20 @@ class _Runner:
         for t in self.lanes_list:
             t[: len(idx)] = t[idx]
         self.lanes.status[len(idx) : n] = EMPTY
-        if self.tail_chunk is not None and self.chunk != self.tail_chunk and running <= self.tail_chunk:
+        tail = self.plan.tail_chunk
+        if tail is not None and self.chunk != tail and running <= tail:
             self.tail_lanes = running
-            self.chunk = self.tail_chunk
+            self.chunk = tail
             self.chunks = [[t[: self.chunk] for t in self.lanes_list]]
         self.active = max(1, math.ceil(running / self.chunk))
 
     def harvest(self, running: int) -> int:
         """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
-        if self.tally_exit_events:
-            st = self.lanes.status[: self.active * self.chunk]
+        st = self.lanes.status[: self.active * self.chunk]
+        if "exits" in self.plan.estimators:
             self.tally_exits(torch.nonzero(st == EXITED).squeeze(1))
+        if "hybrid" in self.plan.estimators:
+            self.tally_hybrid(torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1))
         finished, launched = self.finish_and_refill()
         if self.acc.ready:
             self.flush_vertices(force=True)  # a batch folds only after all its vertices are tallied
@@ -214,23 +286,37 @@ class _Runner:
         self.compact(running)
         return running
 
-    # -- exit estimator -------------------------------------------------------------------------
-    def tally_exits(self, idx: torch.Tensor) -> None:
-        """Tally the exit events of lanes idx (in lane order), EXIT_BLOCK at a time: the compiled
-        lookup has one static shape, so the last block is padded with its first lane and cut."""
-        n = len(idx)
-        for a in range(0, n, EXIT_BLOCK):
+    # -- exit estimator and hybrid ------------------------------------------------------------
+    def _blocks(self, idx: torch.Tensor, fn, axis: tuple[int, ...] | None = None):
+        """fn(block) over EXIT_BLOCK lanes of idx at a time (in lane order), as numpy arrays: the
+        compiled kernels have one static shape, so the last block is padded with its first lane
+        and cut (along the lane axis of each output: `axis`, default 0)."""
+        for a in range(0, len(idx), EXIT_BLOCK):
             block = idx[a : a + EXIT_BLOCK]
             m = len(block)
-            if m < EXIT_BLOCK and self.compiled:
+            if m < EXIT_BLOCK and self.plan.compiled:
                 block = torch.cat((block, block[:1].expand(EXIT_BLOCK - m)))
-            flat, batch, g, s = (v[:m].numpy() for v in self.exit_fn(block, self.lanes_list, self.exit_bins))
-            self.acc.add_hist("exits", batch, flat, g, s)
+            out = fn(block)
+            yield [(v[:m] if ax == 0 else v[:, :m]).numpy() for v, ax in zip(out, axis or (0,) * len(out))]
+
+    def tally_exits(self, idx: torch.Tensor) -> None:
+        """Tally the exit events of lanes idx: one entry per photon."""
+        for flat, _batch, g, s in self._blocks(idx, lambda b: self.exit_fn(b, self.lanes_list, self.plan.exit_bins)):
+            self.photons.add_exits("exits", flat, g, s)
+
+    def tally_hybrid(self, idx: torch.Tensor) -> None:
+        """The hybrid estimator's entries of the photons finished in lanes idx: the first-vertex
+        connection samples (single) and the exit after two or more scatterings (multiple)."""
+        plan = self.plan
+        fn = lambda b: self.entries_fn(b, self.lanes_list, plan.exit_bins, plan.first_vertex, plan.entry_layout)  # noqa: E731
+        for flat2, g, s, key, weight in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1)):
+            self.photons.add_photons("hybrid", flat2, g, s, key, weight)
 
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
-        n_dir = self.layout.n_cos * self.layout.n_phi
-        n_sp = (self.layout.n_r + 1) * self.layout.n_theta
+        layout = self.plan.layout
+        n_dir = layout.n_cos * layout.n_phi
+        n_sp = (layout.n_r + 1) * layout.n_theta
         return ((cfg * 2 + comp) * n_sp + spatial) * n_dir + direction
 
     # -- connection estimator -----------------------------------------------------------------
@@ -272,11 +358,11 @@ class _Runner:
         if n < VERTEX_CHUNK:
             cols = [torch.cat((c, c[:1].expand(VERTEX_CHUNK - n, *c.shape[1:]))) for c in cols]
         px, py, pz, ux, uy, uz, vx, vy, vz, w, cfg, photon, draw, comp = cols
-        T = self.cfgs.table
+        T = self.plan.cfgs.table
         albedo, g, k0, k1 = T.albedo[cfg], T.g[cfg], T.k0[cfg], T.k1[cfg]
         c_lo, c_hi = photon_words(photon)
         (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.connect_fn(
-            px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, self.geo
+            px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, self.plan.geo
         )
         cfg, comp, photon = cfg[:n], comp[:n], photon[:n]
         batch = self.acc.batch_of(photon.numpy())
@@ -294,30 +380,32 @@ class _Runner:
             return self._run(t0)
 
     def _run(self, t0: float) -> ShardTally:
+        plan = self.plan
         running = self.finish_and_refill()[1]
-        n_steps = 1 if self.connect else EXIT_STEPS_PER_CALL
         # Harvesting costs a pass over the lanes plus Python work: wait until an eighth of the
         # lanes has finished (or none runs) so the cost is spread over many photons.
-        harvest_at = max(1, len(self.lanes.status) // HARVEST_DIVISOR)
+        harvest_at = max(1, plan.n_lanes // HARVEST_DIVISOR)
         while running > 0:
             running = finished = 0
             for k in range(self.active):
                 counts, vertex = self.step(self.chunks[k])
                 running, finished = running + int(counts[0]), finished + int(counts[1])
-                if self.connect:
+                if plan.connect:
                     self.collect_vertices(vertex, k * self.chunk)
-            self.steps += n_steps
+            self.steps += plan.n_steps
             if finished >= harvest_at or (running == 0 and finished > 0) or (finished and self.shrinkable(running)):
                 running = self.harvest(running)
         self.flush_vertices(force=True)
         self.acc.fold_ready()
         assert self.acc.complete, "every batch must have folded once all photons finished"
+        stats, counts = self.photons.finish(plan.stop - plan.start)
+        batch_stats, batch_counts = self.acc.finish()
         info = {
-            "photons": self.n_launch, "lanes": len(self.lanes.status), "lane_steps": self.steps, "photon_steps": self.photon_steps,
+            "photons": plan.n_launch, "lanes": plan.n_lanes, "lane_steps": self.steps, "photon_steps": self.photon_steps,
             "vertices": self.vertices, "tail_lanes": self.tail_lanes, "elapsed_s": time.perf_counter() - t0,
-            "engine": "compiled" if self.compiled else "eager", "torch": torch.__version__,
+            "engine": "compiled" if plan.compiled else "eager", "torch": torch.__version__,
         }  # fmt: skip
-        return ShardTally(-1, self.acc.stats, self.acc.n_sum, self.acc.nn_sum, self.acc.k, info)
+        return ShardTally(plan.shard_index, {**stats, **batch_stats}, {**counts, **batch_counts}, plan.stop - plan.start, info)
 
 
 def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int], None] | None = None) -> ShardTally:
@@ -328,6 +416,4 @@ def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int
     or when the shard runs; `info` carries timings and counters that do.
     """
     init_engine()
-    tally = _Runner(spec, shard_index, progress).run()
-    tally.shard_index = shard_index
-    return tally
+    return _Runner(ShardPlan.build(spec, shard_index), progress).run()

@@ -64,7 +64,8 @@ def target_rule(spec: SimulationSpec) -> StopRule | None:
 
 def medium_facts(result: Result) -> dict:
     """What the job's run facts record of one finished medium (its target status if it ran to one)."""
-    facts = {"medium": result.medium_index, "photons_per_config": int(result.n_sum), "batches": int(result.k),
+    facts = {"medium": result.medium_index, "photons_per_config": int(result.n_sum),
+             "batches": int(result.spec.batches_per_shard * len(result.shard_info)),  # the spec's batches run
              "shards": len(result.shard_info), "engine": engine_fact(result.shard_info),
              "photons": int(sum(i.get("photons", 0) for i in result.shard_info)),
              "walk_s": float(sum(i.get("elapsed_s", 0.0) for i in result.shard_info))}

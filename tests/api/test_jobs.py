@@ -37,7 +37,7 @@ BAD_SPECS = [
                  id="radial-bins-zero"),
     pytest.param(tiny_spec(bins={"radial": {"count": 10**6}}), "spec.bins.radial.count", "[1, 4096]", 10**6,
                  id="radial-bins-too-many"),
-    pytest.param(tiny_spec(estimator="guess"), "spec.estimator", "'connections', 'exits' or 'both'", "guess",
+    pytest.param(tiny_spec(estimator="guess"), "spec.estimator", "'hybrid', 'exits', 'connections' or 'both'", "guess",
                  id="bad-estimator"),
 ]
 

@@ -27,6 +27,7 @@ Units: dimensionless. Valid for cos_i in [0, 1] and eta > 0.
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 
 import numpy as np
 
@@ -100,7 +101,10 @@ def critical_cosine(eta: float) -> float:
 def refracted_cosine(cos_i: float, eta: float) -> float:
     """Cosine of the refracted angle for incidence cosine ``cos_i`` into relative index
     ``eta`` (Snell); raises under total internal reflection."""
-    sin2_t = (1.0 - cos_i * cos_i) / (eta * eta)
-    if sin2_t > 1.0:
+    # Exact rational arithmetic on the float inputs, one rounding before the square root: the
+    # float form 1 - sin2_t keeps only rounding noise near the critical angle.
+    c, e = Fraction(cos_i), Fraction(eta)
+    cos2_t = 1 - (1 - c * c) / (e * e)
+    if cos2_t < 0:
         raise ValueError("total internal reflection: no refracted ray")
-    return math.sqrt(1.0 - sin2_t)
+    return math.sqrt(float(cos2_t))

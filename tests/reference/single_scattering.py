@@ -62,6 +62,14 @@ monotone in mu, so an outside bin [c_lo, c_hi) is the inside interval
 G[i, k] is the integral of (b) restricted to that mu interval. Summing over
 cos bins that cover [0, 1] gives (b).
 
+(d) The BSSRDF per (annulus, outside-cosine bin). A bin's S is (1 / (A Omega)) times the
+integral of the exiting radiance over dA d(omega), i.e. of the flux divided by the outside
+cosine: the integrand of (b)/(c) times 1 / cos_o(mu). With the transmittance written out,
+t_s = 4 n c_i c_t / (c_i + n c_t)^2, t_p = 4 n c_i c_t / (n c_i + c_t)^2 (n = 1/eta leaving
+the medium, c_i = mu, c_t = cos_o), T / cos_o = 2 n mu [1 / (mu + n c_t)^2 + 1 / (n mu + c_t)^2]
+is finite where cos_o -> 0 (critical angle, and grazing at eta = 1, where T / cos_o = 1 / mu
+and the integrand stays finite because the flux carries a factor mu).
+
 Valid range: sigma_t > 0, albedo in [0, 1], g in (-1, 1) (tested from -0.9 to
 0.95), eta > 0 (eta = 1 index matched), theta_i in [0, pi/2). Radii in mm,
 edges increasing, the last edge may be inf.
@@ -83,6 +91,7 @@ __all__ = [
     "single_scattering_radial",
     "single_scattering_radial_cos",
     "inside_cosine_from_outside",
+    "transmittance_over_cos_out",
 ]
 
 _EPSABS = 1e-12
@@ -171,10 +180,22 @@ def _as_edges(edges, name: str, upper: float | None = None) -> np.ndarray:
     return e
 
 
+def transmittance_over_cos_out(mu: float, eta: float) -> float:
+    """T(mu) / cos_o leaving the medium (inside cosine mu, relative index eta): see (d); 0 under
+    total internal reflection."""
+    n = 1.0 / eta
+    c2 = 1.0 - (1.0 - mu * mu) / (n * n)
+    if c2 <= 0.0:
+        return 0.0
+    ct = math.sqrt(c2)
+    return 2.0 * n * mu * (1.0 / (mu + n * ct) ** 2 + 1.0 / (n * mu + ct) ** 2)
+
+
 def _cumulative_radial(r_edges: np.ndarray, mu_bounds: np.ndarray, sigma_t: float,
-                       albedo: float, g: float, eta: float) -> np.ndarray:
+                       albedo: float, g: float, eta: float, radiance: bool = False) -> np.ndarray:
     """C[e, k] = (1-Fr_0) a int_{mu_bounds[k]}^{mu_bounds[k+1]} 2 pi p(-mu) T(mu) mu/(1+mu)
-    exp(-sigma_t r_e u(mu)) dmu, for all edges e and mu intervals k at once."""
+    exp(-sigma_t r_e u(mu)) dmu, for all edges e and mu intervals k at once; with radiance=True
+    the integrand has T(mu) / cos_o(mu) in place of T(mu) (the S integral, see (d))."""
     n_k = mu_bounds.size - 1
     tau = sigma_t * r_edges  # may contain inf
     finite = np.isfinite(tau)
@@ -188,7 +209,7 @@ def _cumulative_radial(r_edges: np.ndarray, mu_bounds: np.ndarray, sigma_t: floa
         k = int(np.searchsorted(mu_bounds, mu, side="right")) - 1
         if k < 0 or k >= n_k:
             return out.ravel()
-        t_out = 1.0 - fresnel_reflectance(mu, inv_eta)
+        t_out = transmittance_over_cos_out(mu, eta) if radiance else 1.0 - fresnel_reflectance(mu, inv_eta)
         base = two_pi * float(hg_phase(-mu, g)) * t_out * mu / (1.0 + mu)
         u = math.sqrt((1.0 + mu) / max(1.0 - mu, 1e-300))
         col = base * np.exp(-tau_f * u)
@@ -208,22 +229,26 @@ def _cumulative_radial(r_edges: np.ndarray, mu_bounds: np.ndarray, sigma_t: floa
 
 
 def single_scattering_radial_cos(edges_mm, cos_edges, sigma_t: float, albedo: float,
-                                 g: float, eta: float) -> np.ndarray:
+                                 g: float, eta: float, quantity: str = "G") -> np.ndarray:
     """Single-scattering exitance G per (annulus, outside-cosine bin), normal incidence.
 
     ``edges_mm``: radial edges in mm (n_r + 1, increasing, last may be inf).
     ``cos_edges``: edges in the OUTSIDE cosine cos_o (n_cos + 1, increasing, in [0, 1]).
     Returns an [n_r, n_cos] array of the fraction of incident power (dimensionless) that
     leaves after exactly one scattering through each bin; at normal incidence it all
-    leaves radially (phi_o = 0). Divide by area * solid angle * cos_o for the BSSRDF.
+    leaves radially (phi_o = 0). quantity="S": the integral of the flux / cos_o instead
+    (the radiance integrated over dA d omega, see (d)); divide it by area * solid angle for
+    the bin's BSSRDF.
     """
+    if quantity not in ("G", "S"):
+        raise ValueError(f"quantity must be 'G' or 'S', got {quantity!r}")
     _check(albedo, g, eta)
     if not sigma_t > 0.0:
         raise ValueError("sigma_t must be positive")
     r = _as_edges(edges_mm, "edges_mm")
     c = _as_edges(cos_edges, "cos_edges", upper=1.0)
     mu_b = inside_cosine_from_outside(c, eta)
-    cum = _cumulative_radial(r, mu_b, sigma_t, albedo, g, eta)
+    cum = _cumulative_radial(r, mu_b, sigma_t, albedo, g, eta, radiance=quantity == "S")
     return cum[:-1, :] - cum[1:, :]
 
 

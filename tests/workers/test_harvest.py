@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from schema import uniform_edges
+from tests.reference.binning import searched
 from workers.binning import BinLayout, outgoing_azimuth, wrap_angle
 from workers.harvest import ExitBins, batch_index, count_le, exit_bins
 from workers.optics import refracted_cos
@@ -97,11 +98,11 @@ def _reference(lanes: dict, layout: BinLayout, channel: np.ndarray, bins: ExitBi
     x, y = lanes["x"].double(), lanes["y"].double()
     ux, uy, uz = (lanes[k].double() for k in ("ux", "uy", "uz"))
     r_mm = torch.sqrt(x * x + y * y) / bins.sigma_t[cfg]
-    ir = layout.radial_index(r_mm, torch.from_numpy(channel)[cfg])
-    it = layout.theta_index(wrap_angle(torch.atan2(y, x)))
+    ir = searched(layout).radial_index(r_mm, torch.from_numpy(channel)[cfg])
+    it = searched(layout).theta_index(wrap_angle(torch.atan2(y, x)))
     cos_o = refracted_cos(uz, bins.inv_eta)  # > 0: exits refract out
-    ic = layout.cos_index(cos_o)
-    ip = layout.phi_index(outgoing_azimuth(x, y, ux, uy))
+    ic = searched(layout).cos_index(cos_o)
+    ip = searched(layout).phi_index(outgoing_azimuth(x, y, ux, uy))
     comp = (lanes["nscat"] >= 2).to(torch.int64)
     flat = ((cfg * 2 + comp) * ((N_R + 1) * N_THETA) + ir * N_THETA + it) * (N_COS * N_PHI) + ic * N_PHI + ip
     w = lanes["w"].double()

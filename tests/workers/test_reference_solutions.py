@@ -326,3 +326,32 @@ def test_single_radial_cos_vs_brute_force_mc():
     assert np.all(np.abs(z[populated]) < 4.0), z
     assert np.all(est[~populated] < 1e-5)
     assert abs(w.mean() - single_scattering_total(a, g, eta)) < 4 * w.std() / math.sqrt(n)
+
+
+def test_single_scattering_s_integral_closed_form_isotropic_matched():
+    """eta = 1, g = 0, normal incidence: the S integral over [0, inf) x [c0, c1) is
+    int_{c0}^{c1} (a / 2) mu / (1 + mu) / mu dmu = (a / 2) ln((1 + c1) / (1 + c0)), finite in the
+    grazing bin (the flux there carries the factor mu that 1 / cos_o removes)."""
+    from tests.reference.single_scattering import single_scattering_radial_cos
+
+    a = 0.8
+    cos_edges = np.array([0.0, 0.1, 0.5, 1.0])
+    s = single_scattering_radial_cos([0.0, np.inf], cos_edges, 3.0, a, 0.0, 1.0, quantity="S")[0]
+    want = 0.5 * a * np.log((1.0 + cos_edges[1:]) / (1.0 + cos_edges[:-1]))
+    np.testing.assert_allclose(s, want, rtol=1e-9)
+    g = single_scattering_radial_cos([0.0, np.inf], cos_edges, 3.0, a, 0.0, 1.0)[0]
+    np.testing.assert_allclose(g, 0.5 * a * np.diff(cos_edges - np.log1p(cos_edges)), rtol=1e-9)
+
+
+@pytest.mark.parametrize("eta", [1.0, 1.3, 0.8])
+def test_transmittance_over_cos_out_is_t_over_cos(eta):
+    from tests.reference.fresnel import fresnel_reflectance
+    from tests.reference.single_scattering import transmittance_over_cos_out
+
+    for mu in np.linspace(0.02, 1.0, 50):
+        c2 = 1.0 - eta * eta * (1.0 - mu * mu)
+        if c2 <= 1e-6:
+            assert c2 > 0 or transmittance_over_cos_out(mu, eta) == 0.0
+            continue
+        want = (1.0 - fresnel_reflectance(mu, 1.0 / eta)) / math.sqrt(c2)
+        assert transmittance_over_cos_out(mu, eta) == pytest.approx(want, rel=1e-10), (mu, eta)

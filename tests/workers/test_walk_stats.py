@@ -61,22 +61,28 @@ def test_standard_errors_are_honest(repeated_runs, est, walk_stats):
 
 @pytest.mark.parametrize(
     "estimator, absorption, photons, shards, batches",
-    [("exits", "analog", 20_000, 1, 32), ("connections", "analog", 10_000, 1, 32), ("both", "weights", 3000, 3, 7)],
+    [("exits", "analog", 20_000, 1, 32), ("connections", "analog", 10_000, 1, 32), ("both", "weights", 3000, 3, 7),
+     ("hybrid", "weights", 3000, 2, 3)],
 )
 def test_every_batch_is_counted_once(walk_spec, estimator, absorption, photons, shards, batches):
-    """The error bars rest on the batch bookkeeping: K = shards x batches_per_shard batches
-    whose sizes add up to the photons; a batch folded twice would add photons that never ran
-    (diluting every mean) and a batch lost would drop some."""
+    """The error bars rest on the unit bookkeeping: for the connection estimator K = shards x
+    batches_per_shard batches whose sizes add up to the photons (a batch folded twice would add
+    photons that never ran, diluting every mean, and a batch lost would drop some); for the
+    others and the walk totals K = NN = photons, one unit per photon."""
     spec = walk_spec(
         0.1, 0.9, g=0.9, eta=1.3, n_r=6, max_mm=20.0, spacing="log", n_theta=4, incidence_deg=[45.0],
         photons=photons, shards=shards, batches_per_shard=batches, estimator=estimator, absorption=absorption, seed=53,
     )  # fmt: skip
     result = simulate(spec)
     sizes = [b - a for i in range(shards) for a, b in spec.batch_photon_ranges(i)]
-    assert (result.k, result.n_sum, result.nn_sum) == (len(sizes), photons, sum(n * n for n in sizes))
+    assert result.n_sum == photons
+    for est in result.estimators:
+        want = (len(sizes), sum(n * n for n in sizes)) if est == "connections" else (photons, photons)
+        assert result.units(f"{est}/Rd") == want, est
+    assert result.units("walk/absorbed") == (photons, photons)
     # Every photon's weight 1 - R_spec is accounted for once (exactly in analog mode).
     walk = result.mean("walk/absorbed") + result.mean("walk/truncated")
-    if estimator != "connections":
+    if estimator in ("exits", "both"):
         balance = walk + result.mean("exits/Rd")[:, 2]
         tol = 1e-6 if absorption == "analog" else 1e-2
         np.testing.assert_allclose(balance, 1.0 - result.configs.r_spec, rtol=0, atol=tol)
@@ -182,3 +188,24 @@ def test_g_over_all_bins_and_beyond_is_rd(table_run):
         for r in (r for r in rows if r["estimator"] == est):
             sel = (t["estimator"] == est) & (t["incidence_deg"] == r["incidence_deg"]) & (t["channel"] == r["channel"]) & (t["component"] == r["component"])
             assert t["G"][sel].sum() + r["Rd_beyond_rmax"] == pytest.approx(r["Rd"], rel=1e-12, abs=1e-17)
+
+
+def test_tables_carry_events_nan_errors_and_unresolved_counts(table_run):
+    """events per row = the result's event counts; NaN errors exactly where a row has no event
+    (never 0 +- 0); the summary counts the bins without events."""
+    result, out = table_run
+    for name, q in (("radial", "radial_G"), ("bins", "bins_G")):
+        t = _columns(out / f"{name}.parquet")
+        assert t["events"].dtype == np.int64 and np.all(t["events"] >= 0)
+        err = t["Rd_r_stderr"] if name == "radial" else t["G_stderr"]
+        assert np.array_equal(np.isnan(err), t["events"] == 0)
+        assert np.all(err[t["events"] > 0] > 0)
+        if name == "bins":
+            assert np.array_equal(np.isnan(t["S_stderr"]), t["events"] == 0)
+            assert (t["events"] == 0).any(), "the layout must leave some bins empty for this test"
+            rows = summary(result)["results"]
+            for r in rows:
+                sel = (t["estimator"] == r["estimator"]) & (t["incidence_deg"] == r["incidence_deg"]) & (t["channel"] == r["channel"]) & (t["component"] == r["component"])
+                assert r["unresolved_bins"] == int(np.sum(t["events"][sel] == 0))
+        total = sum(int(result.events(f"{e}/{q}")[:, :, : result.layout.n_r].sum()) for e in result.estimators)
+        assert int(t["events"].sum()) == total

@@ -1,0 +1,54 @@
+"""Searched bin lookups: the plain reference the walk's fused lookups are tested against.
+
+The walk bins events with computed uniform edges (:func:`workers.binning.uniform_index`) and a
+branchless binary search (:func:`workers.harvest.count_le`); these look the values up in the
+stored float64 edges with torch.searchsorted / bucketize, the obvious way, for the tests only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from workers.binning import BinLayout
+
+__all__ = ["edge_index", "SearchedLookup", "searched"]
+
+
+def edge_index(value: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Index k of the bin [edges[k], edges[k+1]) holding value, int64, clamped to the end bins.
+
+    A value exactly on edge k is in bin k; the closed upper end (value == edges[-1], e.g.
+    cos = 1) belongs to the last bin.
+    """
+    idx = torch.bucketize(value.contiguous(), edges.to(value.dtype), right=True) - 1
+    return torch.clamp(idx, 0, len(edges) - 2)
+
+
+@dataclass(frozen=True)
+class SearchedLookup:
+    """Bins of a :class:`workers.binning.BinLayout` by searching its stored edges."""
+
+    layout: BinLayout
+
+    def radial_index(self, r_mm: torch.Tensor, channel: torch.Tensor) -> torch.Tensor:
+        """Radial bin of r (mm) for each event's channel; n_r for r >= r_max (overflow)."""
+        edges = torch.as_tensor(self.layout.radial_mm, dtype=r_mm.dtype)
+        # searchsorted(right) - 1 puts r in [edge_k, edge_k+1) into k; r >= r_max gives n_r.
+        idx = torch.searchsorted(edges[channel], r_mm.unsqueeze(-1), right=True).squeeze(-1) - 1
+        return torch.clamp(idx, 0, self.layout.n_r)
+
+    def theta_index(self, theta_s: torch.Tensor) -> torch.Tensor:
+        """theta_s bin of an angle already wrapped into [0, 2 pi)."""
+        return edge_index(theta_s, torch.from_numpy(self.layout.theta_s))
+
+    def cos_index(self, cos_o: torch.Tensor) -> torch.Tensor:
+        return edge_index(cos_o, torch.from_numpy(self.layout.cos_o))
+
+    def phi_index(self, phi_o: torch.Tensor) -> torch.Tensor:
+        return edge_index(phi_o, torch.from_numpy(self.layout.phi_o))
+
+
+def searched(layout: BinLayout) -> SearchedLookup:
+    return SearchedLookup(layout)
