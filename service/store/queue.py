@@ -239,10 +239,19 @@ class QueueMixin(StoreBase):
                         )
                     )
                     publisher.publish(version)
+                    # Shards the merge no longer needs (the last medium met its target early):
+                    # cancelled as skipped, so that every task of a finished job is resolved.
+                    skipped = conn.execute(
+                        sa.update(tasks).where(
+                            tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.SHARD,
+                            tasks.c.state.in_([TaskState.QUEUED, TaskState.LEASED, TaskState.WAITING]),
+                        ).values(state=TaskState.CANCELLED, lease_expires_at=None, finished_at=now,
+                                 error="skipped: its medium met the target error with fewer shards")
+                    ).rowcount
                     conn.execute(
                         sa.update(jobs).where(jobs.c.id == lease.job_id).values(
                             state=JobState.SUCCEEDED, finished_at=now, updated_at=now, folded=jobs.c.shards,
-                            dataset_name=name, dataset_version=version,
+                            dataset_name=name, dataset_version=version, shards_skipped=jobs.c.shards_skipped + skipped,
                         )
                     )
                 return version
