@@ -26,7 +26,7 @@ from urllib.parse import quote
 
 import httpx
 
-from service.runner import format_progress
+from service.runner import format_progress, format_si
 from workers.simulate import format_summary
 
 __all__ = ["ApiClient", "ApiError", "add_parser", "main", "format_error", "follow_job", "TERMINAL_STATES"]
@@ -106,6 +106,15 @@ class ApiClient:
 
     def job(self, job_id: str) -> dict[str, Any]:
         return self.get_json(f"/v1/jobs/{_seg(job_id)}")
+
+    def media(self, job_id: str) -> dict[str, Any]:
+        """Every medium's progress (all pages of GET /v1/jobs/{id}/media, joined)."""
+        page = self.get_json(f"/v1/jobs/{_seg(job_id)}/media", params={"limit": 1000})
+        items = list(page["items"])
+        while page["next_offset"] is not None:
+            page = self.get_json(f"/v1/jobs/{_seg(job_id)}/media", params={"limit": 1000, "offset": page["next_offset"]})
+            items += page["items"]
+        return dict(page, items=items, offset=0, next_offset=None)
 
     def summary(self, name: str, version: int | str) -> dict[str, Any]:
         """The version's summary.json (checksum-verified by the server)."""
@@ -226,10 +235,29 @@ def cmd_status(args: argparse.Namespace) -> int:
             job = follow_job(client, args.job, poll=args.poll, timeout=args.timeout)
             return report_outcome(client, job, as_json=args.json)
         job = client.job(args.job)
+        if args.media:
+            media = client.media(args.job)
+            print(json.dumps(dict(job, media=media["items"]), sort_keys=True) if args.json
+                  else _status_text(job) + "\n" + media_text(media["items"]))
+            return 0
         print(json.dumps(job, sort_keys=True) if args.json else _status_text(job))
         return 0
     finally:
         client.close()
+
+
+def media_text(items: list[dict[str, Any]]) -> str:
+    """One line per medium: coordinates, shards done / skipped / running, folded, photons."""
+    rows = [f"{'medium':>6}  {'albedo':<17} {'g':<17} {'eta':>6}  {'done':>5} {'skip':>5} {'run':>4} "
+            f"{'folded':>6}  {'photons':>15}  state"]
+    for m in items:
+        albedo = ",".join(f"{a:.4g}" for a in m["albedo"])
+        g = ",".join(f"{x:.4g}" for x in m["g"])
+        state = "merged" if m["merged"] else "running" if m["shards_running"] else "waiting"
+        rows.append(f"{m['medium']:>6}  {albedo[:17]:<17} {g[:17]:<17} {m['eta']:>6.4g}  "
+                    f"{m['shards_done']:>2}/{m['shards_total']:<2} {m['shards_skipped']:>5} {m['shards_running']:>4} "
+                    f"{m['shards_folded']:>6}  {format_si(m['photons_done']):>7}/{format_si(m['photons_total']):<7}  {state}")
+    return "\n".join(rows)
 
 
 def _datasets_text(items: list[dict[str, Any]]) -> str:
@@ -334,6 +362,8 @@ def add_parser(subparsers) -> None:
                               description="Show a job; --follow until it ends, then its summary.")
     p.add_argument("job", help="job id")
     p.add_argument("--follow", action="store_true", help="follow until the job ends, then print its summary")
+    p.add_argument("--media", action="store_true", help="also list every medium (a sweep's grid point): its "
+                   "albedo, g and eta, shards done / skipped / running, shards merged, photons")
     _common(p)
     _follow_options(p)
     p.set_defaults(func=_guard(cmd_status))

@@ -21,7 +21,7 @@ from typing import Any
 from workers.cores import default_workers
 from workers.simulate import format_summary  # torch-free: the walk is imported where it runs
 
-__all__ = ["add_parser", "main", "run_local", "start_workers", "signal_workers", "stop_workers", "format_progress", "format_summary"]
+__all__ = ["add_parser", "main", "run_local", "start_workers", "signal_workers", "stop_workers", "format_progress", "format_si", "format_summary"]
 
 _REPO = Path(__file__).resolve().parents[1]
 
@@ -65,7 +65,8 @@ def stop_workers(procs: list[subprocess.Popen], timeout: float = 15.0) -> None:
             p.wait()
 
 
-def _si(x: float | None) -> str:
+def format_si(x: float | None) -> str:
+    """A count or rate with a k/M/G suffix ("-" for None)."""
     if x is None:
         return "-"
     for unit, scale in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
@@ -85,7 +86,7 @@ def format_progress(p) -> str:
     skipped = getattr(p, "shards_skipped", 0)
     return (f"{p.state:<9} shards {p.shards_done}/{p.shards_total} ({running}"
             + (f", skipped {skipped}" if skipped else "") + ") "
-            f"photons {_si(p.photons_done)}  {_si(p.rate_photons_per_s)}/s  ETA {eta}  merge {p.merge_state}, {merged}")
+            f"photons {format_si(p.photons_done)}  {format_si(p.rate_photons_per_s)}/s  ETA {eta}  merge {p.merge_state}, {merged}")
 
 
 def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,

@@ -119,6 +119,34 @@ class JobPublic(BaseModel):
                    progress=None if progress is None else JobProgressPublic.from_record(progress))
 
 
+class MediumProgressPublic(BaseModel):
+    """Progress of one medium of a job (a sweep's grid point; the only one of a single medium)."""
+
+    medium: int = Field(description="Index of the medium in the job (the sweep's grid order).")
+    albedo: list[float] = Field(description="Single-scattering albedo per channel (one entry for a sweep medium).")
+    g: list[float] = Field(description="HG mean cosine per channel.")
+    eta: float = Field(description="Relative index of refraction.")
+    shards_total: int
+    shards_done: int
+    shards_running: int = Field(description="Leased with a live lease.")
+    shards_skipped: int = Field(description="Not run: the medium met its target error first, or the job ended.")
+    shards_folded: int = Field(description="Shards of this medium the merge has folded, in shard order.")
+    merged: bool = Field(description="The merge is past this medium: its rows of the tables are final.")
+    photons_done: int = Field(description="Photons of its done shards plus those reported by running ones.")
+    photons_total: int = Field(description="Photons of the medium if every shard runs (photons x angles x channels).")
+
+
+class MediumList(BaseModel):
+    """One page of a job's media, in index order."""
+
+    job_id: str
+    media_total: int
+    items: list[MediumProgressPublic]
+    limit: int
+    offset: int
+    next_offset: int | None = Field(description="Offset of the next page, None on the last page.")
+
+
 class JobList(BaseModel):
     """One page of jobs, newest first."""
 

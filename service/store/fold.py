@@ -112,12 +112,13 @@ class FoldMixin(StoreBase):
                     sa.func.count().filter(t.state == TaskState.DONE),
                     sa.func.count().filter(t.state == TaskState.LEASED, t.lease_expires_at >= now),
                     sa.func.count().filter(t.state == TaskState.CANCELLED),
+                    sa.func.coalesce(sa.func.sum(t.photons), 0),
                 ).where(t.job_id == job_id, t.kind == TaskKind.SHARD, t.shard_index >= lo, t.shard_index < hi)
                 .group_by(medium).order_by(medium)
             ).all()
         return [
             MediumProgress(int(m), int(n), int(done), int(running), int(skipped),
                            max(0, min(shards_per_medium, folded - int(m) * shards_per_medium)),
-                           folded >= (int(m) + 1) * shards_per_medium)
-            for m, n, done, running, skipped in rows
+                           folded >= (int(m) + 1) * shards_per_medium, int(photons))
+            for m, n, done, running, skipped, photons in rows
         ]

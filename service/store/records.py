@@ -186,3 +186,4 @@ class MediumProgress:
     shards_skipped: int  # cancelled: the medium met its target first, or the job ended
     folded: int  # where the merge stands in the medium: shards folded (shards_total once past it)
     merged: bool  # the merge is past the medium: its tables are final
+    photons_done: int = 0  # photons of its done shards plus those reported by its running shards

@@ -11,7 +11,10 @@ from fastapi.responses import JSONResponse
 from service.api.deps import AuthDep, JobDep, ReadAuthDep, SettingsDep, StorageDep, StoreDep
 from service.api.errors import error_responses
 from service.api.limits import spec_limit_problems
-from service.api.models import IDEMPOTENCY_KEY_MAX, IDEMPOTENCY_KEY_PATTERN, JobCreate, JobList, JobPublic
+from schema import parse_spec
+from service.api.models import (
+    IDEMPOTENCY_KEY_MAX, IDEMPOTENCY_KEY_PATTERN, JobCreate, JobList, JobPublic, MediumList, MediumProgressPublic,
+)
 from service.store import JobState
 
 __all__ = ["router"]
@@ -93,6 +96,37 @@ def get_job(_token: ReadAuthDep, job: JobDep, store: StoreDep) -> JobPublic:
     """State, shards queued / running / done / failed, photons done, rate, ETA, error, and the
     dataset name and version once it succeeded."""
     return JobPublic.from_record(job, store.progress(job.id))
+
+
+@router.get("/{job_id}/media", summary="Progress per medium", response_model=MediumList,
+            responses=error_responses(401, 404, 422, 503))
+def job_media(
+    _token: ReadAuthDep,
+    job: JobDep,
+    store: StoreDep,
+    limit: Annotated[int, Query(ge=1, le=1000, description="Media per page.")] = 100,
+    offset: Annotated[int, Query(ge=0, le=OFFSET_MAX, description="Media to skip.")] = 0,
+) -> MediumList:
+    """For each medium of the job (a sweep's grid, in index order): its coordinates (albedo, g,
+    eta), shards done / running / skipped, how far the merge has folded it, and its photons."""
+    spec = parse_spec(job.spec_dict)
+    media = spec.media()
+    page = media[offset : offset + limit]
+    per_medium = spec.photons * len(spec.incidence_deg)
+    rows = {m.medium: m for m in store.medium_progress(job.id, spec.shards, offset=offset, limit=limit)}
+    items = []
+    for medium in page:
+        p = rows.get(medium.index)  # no row: the job's tasks are gone (it was deleted meanwhile)
+        items.append(MediumProgressPublic(
+            medium=medium.index, albedo=list(medium.albedo), g=list(medium.g), eta=medium.eta,
+            shards_total=spec.shards if p is None else p.shards_total, shards_done=0 if p is None else p.shards_done,
+            shards_running=0 if p is None else p.shards_running, shards_skipped=0 if p is None else p.shards_skipped,
+            shards_folded=0 if p is None else p.folded, merged=False if p is None else p.merged,
+            photons_done=0 if p is None else p.photons_done, photons_total=per_medium * len(medium.albedo),
+        ))  # fmt: skip
+    more = offset + limit < len(media)
+    return MediumList(job_id=job.id, media_total=len(media), items=items, limit=limit, offset=offset,
+                      next_offset=offset + limit if more else None)
 
 
 @router.post("/{job_id}/cancel", summary="Cancel a job", response_model=JobPublic,
