@@ -1,4 +1,4 @@
-"""`python -m workers.efficiency`: efficiency of each estimator per radial bin.
+"""`python -m workers.efficiency`: efficiency of each estimator per spatial bin.
 
 Efficiency = 1 / (variance x CPU seconds): the inverse of the CPU time needed for a unit
 variance.  Each estimator (hybrid, the default; exits; connections) runs alone on the same medium
@@ -6,6 +6,10 @@ variance.  Each estimator (hybrid, the default; exits; connections) runs alone o
 --medium M2) at the given incidence; the table lists, per radial bin and component (single,
 multiple), Rd(r) of each and their efficiencies, the ratio connections / exits (> 1:
 connections win) and the hybrid's efficiency over the better of the two (the bar: >= 0.5).
+Spatial bins are radial rings at normal incidence and (r, theta_s) sectors at oblique incidence
+(``--theta-s``, default 4 there), one direction bin each; the last line gives, per component,
+the smallest hybrid / best ratio over the bins in which every estimator saw at least
+``--min-events`` events (fewer make the variance itself too noisy to compare).
 Variances are per-photon for exits and hybrid, from 32 batches for connections (whose ratios
 therefore scatter by ~25 %).  A bin an estimator saw no event in has no efficiency (nan).
 """
@@ -25,16 +29,16 @@ from schema import SimulationSpec
 from .bench import MEDIA
 from .simulate import simulate
 
-__all__ = ["ESTIMATORS", "efficiency", "main"]
+__all__ = ["ESTIMATORS", "efficiency", "worst_hybrid_ratio", "main"]
 
 ESTIMATORS = ("hybrid", "exits", "connections")
 
 
-def _run(medium: str, estimator: str, photons: int, radial: dict, incidence: float) -> tuple[object, float]:
+def _run(medium: str, estimator: str, photons: int, radial: dict, incidence: float, n_theta: int) -> tuple[object, float]:
+    bins = {"radial": radial, "theta_s": {"count": n_theta}, "cos_theta_o": {"count": 1}, "phi_o": {"count": 1}}
     spec = SimulationSpec.model_validate({
         "name": f"eff-{medium}-{estimator}", "medium": MEDIA[medium], "photons": photons, "shards": 4,
-        "batches_per_shard": 8, "estimator": estimator, "seed": 11, "bins": {"radial": radial},
-        "incidence_deg": [incidence],
+        "batches_per_shard": 8, "estimator": estimator, "seed": 11, "bins": bins, "incidence_deg": [incidence],
     })  # fmt: skip
     # Compile first, on shards with the same batch count (the batch starts are a kernel argument:
     # another count would compile new kernels inside the timed run) and a different seed.
@@ -44,34 +48,50 @@ def _run(medium: str, estimator: str, photons: int, radial: dict, incidence: flo
     return result, time.process_time() - cpu0
 
 
-def efficiency(medium: str, photons: dict[str, int], radial: dict, incidence: float = 0.0) -> list[dict]:
-    """Per radial bin and component: Rd(r) and efficiency of each estimator; last row the run facts."""
+def efficiency(medium: str, photons: dict[str, int], radial: dict, incidence: float = 0.0,
+               n_theta: int = 1) -> list[dict]:
+    """Per spatial bin (r, theta_s) and component: Rd of the bin per unit area, events and
+    efficiency of each estimator; the last row holds the run facts."""
     torch.set_num_threads(1)
-    runs = {est: _run(medium, est, photons[est], radial, incidence) for est in ESTIMATORS}
+    runs = {est: _run(medium, est, photons[est], radial, incidence, n_theta) for est in ESTIMATORS}
     first = runs["exits"][0]
-    edges = first.layout.radial_mm[0]
-    area = np.pi * (edges[1:] ** 2 - edges[:-1] ** 2)
+    edges, theta = first.layout.radial_mm[0], first.layout.theta_s
+    area = first.layout.area_mm2(0)  # [n_r, n_theta]
     n_r = first.layout.n_r
     rows = []
     for k, comp in ((0, "single"), (1, "multiple")):
-        m, eff = {}, {}
+        m, eff, events = {}, {}, {}
         for est, (res, cpu) in runs.items():
-            m[est] = res.mean(f"{est}/radial_G")[0, k, :n_r] / area
-            se = res.stderr(f"{est}/radial_G")[0, k, :n_r]  # NaN where no event: no efficiency
+            m[est] = res.mean(f"{est}/bins_G")[0, k, :n_r, :, 0, 0] / area
+            se = res.stderr(f"{est}/bins_G")[0, k, :n_r, :, 0, 0]  # NaN where no event: no efficiency
+            events[est] = res.events(f"{est}/bins_G")[0, k, :n_r, :, 0, 0]
             with np.errstate(divide="ignore", invalid="ignore"):
                 eff[est] = np.where(se > 0, 1.0 / (se**2 * cpu), np.nan)
         for i in range(n_r):
-            e = {est: float(eff[est][i]) for est in ESTIMATORS}
-            best = np.nanmax([e["exits"], e["connections"]]) if np.isfinite([e["exits"], e["connections"]]).any() else np.nan
-            rows.append({
-                "component": comp, "r_lo_mm": float(edges[i]), "r_hi_mm": float(edges[i + 1]),
-                **{f"Rd_r_{est}": float(m[est][i]) for est in ESTIMATORS}, **{f"eff_{est}": e[est] for est in ESTIMATORS},
-                "ratio": e["connections"] / e["exits"],  # nan where either saw no event
-                "ratio_hybrid": e["hybrid"] / best if np.isfinite(best) else float("nan"),
-            })  # fmt: skip
+            for j in range(n_theta):
+                e = {est: float(eff[est][i, j]) for est in ESTIMATORS}
+                pair = [e["exits"], e["connections"]]
+                best = np.nanmax(pair) if np.isfinite(pair).any() else np.nan
+                rows.append({
+                    "component": comp, "r_lo_mm": float(edges[i]), "r_hi_mm": float(edges[i + 1]),
+                    "theta_s_lo": float(theta[j]), "theta_s_hi": float(theta[j + 1]),
+                    **{f"Rd_{est}": float(m[est][i, j]) for est in ESTIMATORS},
+                    **{f"events_{est}": int(events[est][i, j]) for est in ESTIMATORS},
+                    **{f"eff_{est}": e[est] for est in ESTIMATORS},
+                    "ratio": e["connections"] / e["exits"],  # nan where either saw no event
+                    "ratio_hybrid": e["hybrid"] / best if np.isfinite(best) else float("nan"),
+                })  # fmt: skip
     rows.append({**{f"cpu_s_{est}": cpu for est, (_, cpu) in runs.items()}, **{f"photons_{est}": photons[est] for est in ESTIMATORS},
                  "medium": medium, "incidence_deg": incidence})  # fmt: skip
     return rows
+
+
+def worst_hybrid_ratio(rows: list[dict], component: str, min_events: int) -> tuple[float, int]:
+    """(smallest hybrid / best ratio, bins compared) over the bins of `component` in which
+    every estimator saw at least `min_events` events."""
+    ratios = [r["ratio_hybrid"] for r in rows if r["component"] == component
+              and all(r[f"events_{est}"] >= min_events for est in ESTIMATORS) and np.isfinite(r["ratio_hybrid"])]
+    return (min(ratios), len(ratios)) if ratios else (float("nan"), 0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -83,22 +103,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--photons-connections", type=int, default=4_000)
     p.add_argument("--radial-count", type=int, default=16)
     p.add_argument("--max-mm", type=float, default=2.0)
+    p.add_argument("--theta-s", type=int, default=None, help="theta_s bins (default 1 at normal incidence, else 4)")
+    p.add_argument("--min-events", type=int, default=100, help="events every estimator needs in a bin for the summary")
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
     radial = {"count": a.radial_count, "max_mm": a.max_mm, "spacing": "log", "min_fraction": 0.01}
     photons = {"exits": a.photons_exits, "hybrid": a.photons_hybrid, "connections": a.photons_connections}
-    rows = efficiency(a.medium, photons, radial, a.incidence)
+    n_theta = a.theta_s or (1 if a.incidence == 0 else 4)
+    rows = efficiency(a.medium, photons, radial, a.incidence, n_theta)
     if a.json:
         print(json.dumps(rows))
         return 0
     info = rows.pop()
     print(f"{a.medium}, incidence {a.incidence:g} deg: " + ", ".join(f"{est} {info[f'photons_{est}']} photons in {info[f'cpu_s_{est}']:.1f} CPU-s" for est in ESTIMATORS))
-    print(f"{'component':<9} {'r_lo':>7} {'r_hi':>7} {'Rd_r hybrid':>11} {'Rd_r exits':>11} {'Rd_r conn':>11} "
+    print(f"{'component':<9} {'r_lo':>7} {'r_hi':>7} {'theta_s':>7} {'Rd hybrid':>10} {'Rd exits':>10} {'Rd conn':>10} "
           f"{'eff hybrid':>10} {'eff exits':>10} {'eff conn':>10} {'conn/exits':>10} {'hyb/best':>9}")  # fmt: skip
     for r in rows:
-        print(f"{r['component']:<9} {r['r_lo_mm']:>7.4f} {r['r_hi_mm']:>7.4f} {r['Rd_r_hybrid']:>11.4g} {r['Rd_r_exits']:>11.4g} "
-              f"{r['Rd_r_connections']:>11.4g} {r['eff_hybrid']:>10.3g} {r['eff_exits']:>10.3g} {r['eff_connections']:>10.3g} "
-              f"{r['ratio']:>10.3g} {r['ratio_hybrid']:>9.3g}")  # fmt: skip
+        print(f"{r['component']:<9} {r['r_lo_mm']:>7.4f} {r['r_hi_mm']:>7.4f} {r['theta_s_lo']:>7.3f} {r['Rd_hybrid']:>10.4g} "
+              f"{r['Rd_exits']:>10.4g} {r['Rd_connections']:>10.4g} {r['eff_hybrid']:>10.3g} {r['eff_exits']:>10.3g} "
+              f"{r['eff_connections']:>10.3g} {r['ratio']:>10.3g} {r['ratio_hybrid']:>9.3g}")  # fmt: skip
+    for comp in ("single", "multiple"):
+        worst, n = worst_hybrid_ratio(rows, comp, a.min_events)
+        print(f"{comp}: hybrid / best >= {worst:.3g} over {n} bins with >= {a.min_events} events in every estimator (bar 0.5)")
     return 0
 
 
