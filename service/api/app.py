@@ -58,8 +58,8 @@ def check_auth_config(settings: Settings) -> None:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """A configured app; raises :class:`InsecureBindError` on an unsafe auth configuration.
 
-    ``settings`` (default: the cached :func:`get_settings`) is checked here and, when given,
-    installed as the override of ``get_settings`` so every request sees it.
+    ``settings`` (default: the cached :func:`service.settings.get_settings`) is checked here and
+    kept in ``app.state.settings``, where every request reads it (:func:`service.api.deps.get_settings`).
     """
     effective = settings if settings is not None else get_settings()
     check_auth_config(effective)
@@ -82,8 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.resources = resources
-    if settings is not None:
-        app.dependency_overrides[get_settings] = lambda: settings
+    app.state.settings = effective
     install_error_handlers(app)
     app.add_middleware(BodyLimit, max_bytes=effective.max_body_bytes)
     for router in ROUTERS:

@@ -1,11 +1,16 @@
 """Dependencies of the routes, as ``Annotated`` aliases.
 
-    SettingsDep   the cached :func:`service.settings.get_settings` (tests override it)
+    SettingsDep   the app's settings, ``app.state.settings`` (tests may override :func:`get_settings`)
     StoreDep      the app's JobStore (one per process, created on first use)
     StorageDep    the app's DatasetStorage
     AuthDep       a bearer token from ``settings.api_tokens``: mutating endpoints
     ReadAuthDep   the same unless ``settings.read_open``: read endpoints
     JobDep        the job named by the ``{job_id}`` path parameter, or 404
+
+The dependencies that only read memory are ``async def``: FastAPI runs a plain ``def`` dependency
+in its thread pool, a thread hop each (six per status read before, a quarter of its CPU time);
+those that query the database (:func:`job_or_404`) stay plain functions, off the event loop. The
+first request of a process opens the store (and migrates it) in :func:`get_store`, on the loop.
 
 Routes declare the auth dependency as their first parameter: dependencies are resolved in order,
 so a caller without a valid token gets 401 before anything is looked up (no 404 or 422 leaks).
@@ -19,23 +24,33 @@ import hashlib
 import re
 import secrets
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Annotated
+from typing import Annotated, TypeVar
 
 from fastapi import Depends, HTTPException, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.api.errors import shorten
 from service.datasets import DatasetStorage
-from service.settings import Settings, get_settings
+from service.settings import Settings
 from service.store import JobNotFound, JobRecord, JobStore
 
 __all__ = [
     "SettingsDep", "StoreDep", "StorageDep", "AuthDep", "ReadAuthDep", "JobDep", "JobIdPath", "JOB_ID_PATTERN",
     "get_settings", "get_store", "token_fingerprint", "get_storage", "require_token", "require_read_token", "job_or_404",
-    "Resources",
+    "lookup_job",
+    "Resources", "API_POOL_SIZE",
 ]
+
+
+
+async def get_settings(request: Request) -> Settings:
+    """The settings :func:`service.api.app.create_app` was made with. Read from the app's state,
+    not installed as a dependency override: FastAPI analyses an overridden dependency's
+    signature again on every request (a third of a status read's CPU time, BENCHMARKS.md)."""
+    return request.app.state.settings
+
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
@@ -52,6 +67,10 @@ def _unavailable(what: str, setting: str) -> Iterator[None]:
                             headers={"Retry-After": "5"}) from exc
 
 
+API_POOL_SIZE = 8
+"""Job store connections an API process keeps open (requests run concurrently in the thread pool)."""
+
+
 class Resources:
     """The store and storage of one app, created on first use (a down database does not stop the
     process from starting: ``/readyz`` reports it) and reused by every request."""
@@ -66,7 +85,8 @@ class Resources:
         with self._lock:
             if self._store is None or self._store[0] != key:
                 with _unavailable("job store", "BSSRDF_DATABASE_URL"):
-                    self._store = (key, JobStore(settings.database_url, max_attempts=settings.max_attempts))
+                    self._store = (key, JobStore(settings.database_url, max_attempts=settings.max_attempts,
+                                                 pool_size=API_POOL_SIZE))
             return self._store[1]
 
     def storage(self, settings: Settings) -> DatasetStorage:
@@ -83,12 +103,12 @@ class Resources:
             self._store = self._storage = None
 
 
-def get_store(request: Request, settings: SettingsDep) -> JobStore:
+async def get_store(request: Request, settings: SettingsDep) -> JobStore:
     """The job store of ``settings.database_url``."""
     return request.app.state.resources.store(settings)
 
 
-def get_storage(request: Request, settings: SettingsDep) -> DatasetStorage:
+async def get_storage(request: Request, settings: SettingsDep) -> DatasetStorage:
     """The dataset storage at ``settings.storage_uri``."""
     return request.app.state.resources.storage(settings)
 
@@ -124,12 +144,12 @@ def _check(settings: Settings, credentials: HTTPAuthorizationCredentials | None)
     return credentials.credentials
 
 
-def require_token(settings: SettingsDep, credentials: Credentials) -> str | None:
+async def require_token(settings: SettingsDep, credentials: Credentials) -> str | None:
     """A valid bearer token (mutating endpoints)."""
     return _check(settings, credentials)
 
 
-def require_read_token(settings: SettingsDep, credentials: Credentials) -> str | None:
+async def require_read_token(settings: SettingsDep, credentials: Credentials) -> str | None:
     """A valid bearer token unless reads are open (``settings.read_open``)."""
     return None if settings.read_open else _check(settings, credentials)
 
@@ -145,21 +165,29 @@ AuthDep = Annotated[str | None, Depends(require_token)]
 ReadAuthDep = Annotated[str | None, Depends(require_read_token)]
 
 
+T = TypeVar("T")
+
 JOB_ID_PATTERN = "^[0-9a-f]{8}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{4}-[0-9a-f]{12}$"
 """Job ids are uuid4 text (service.store.jobs): no other string names a job."""
 
 JobIdPath = Annotated[str, Path(description="Job id returned by POST /v1/jobs (a UUID).")]
 
 
-def job_or_404(job_id: JobIdPath, store: StoreDep) -> JobRecord:
-    """The job named in the path (404 if there is none; an id that is no UUID is not looked up)."""
+def lookup_job(job_id: str, lookup: Callable[[str], T]) -> T:
+    """``lookup(job_id)`` (a store read raising JobNotFound), or 404; an id that is no UUID is
+    not looked up."""
     try:
         if re.fullmatch(JOB_ID_PATTERN, job_id) is None:
             raise JobNotFound(shorten(job_id))
-        return store.get_job(job_id)
+        return lookup(job_id)
     except JobNotFound as exc:
         raise HTTPException(404, f"{exc}; job ids are UUIDs as returned by POST /v1/jobs; "
                                  "list jobs with GET /v1/jobs") from None
+
+
+def job_or_404(job_id: JobIdPath, store: StoreDep) -> JobRecord:
+    """The job named in the path (404 if there is none)."""
+    return lookup_job(job_id, store.get_job)
 
 
 JobDep = Annotated[JobRecord, Depends(job_or_404)]

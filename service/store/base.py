@@ -8,7 +8,7 @@ from contextlib import contextmanager
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection, Engine
 
-from service.store.engine import db_now, make_engine
+from service.store.engine import READ_ONLY, db_now, make_engine
 from service.store.errors import JobNotFound
 from service.store.retry import RetryPolicy
 from service.store.states import JobState, TaskState
@@ -20,11 +20,12 @@ __all__ = ["StoreBase"]
 class StoreBase:
     """Engine, transaction helper and the operations every mixin needs."""
 
-    def __init__(self, url: str, *, max_attempts: int = 3, retry_policy: RetryPolicy = RetryPolicy()) -> None:
+    def __init__(self, url: str, *, max_attempts: int = 3, retry_policy: RetryPolicy = RetryPolicy(),
+                 pool_size: int = 2) -> None:
         if max_attempts < 1:
             raise ValueError(f"max_attempts must be >= 1; received {max_attempts}")
         self.url = url
-        self.engine: Engine = make_engine(url)
+        self.engine: Engine = make_engine(url, pool_size)
         self.max_attempts = max_attempts
         self.retry_policy = retry_policy
 
@@ -42,9 +43,18 @@ class StoreBase:
         with self.engine.begin() as conn:
             yield conn
 
+    @contextmanager
+    def _read(self) -> Iterator[Connection]:
+        """A connection for reads only. On SQLite its transaction is a deferred ``BEGIN``: WAL
+        readers see a snapshot without taking the write lock, so a status read never queues
+        behind a worker's commit (:data:`service.store.engine.READ_ONLY`)."""
+        with self.engine.connect() as conn:
+            conn.execution_options(**{READ_ONLY: True})
+            yield conn
+
     def now(self) -> float:
         """The database clock, seconds since the Unix epoch."""
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             return float(conn.execute(sa.select(self._now())).scalar_one())
 
     def _lock_job(self, conn: Connection, job_id: str) -> JobState:

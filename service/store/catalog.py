@@ -24,7 +24,7 @@ class CatalogMixin(StoreBase):
             .group_by(v.name)
             .order_by(v.name)
         )
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             return [DatasetRecord(n, int(latest), int(c), float(t)) for n, latest, c, t in conn.execute(q)]
 
     def list_versions(self, name: str, *, deleted: bool = False) -> list[DatasetVersionRecord]:
@@ -33,7 +33,7 @@ class CatalogMixin(StoreBase):
         q = sa.select(dataset_versions).where(dataset_versions.c.name == name).order_by(dataset_versions.c.version)
         if not deleted:
             q = q.where(dataset_versions.c.deleted_at.is_(None))
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             return [DatasetVersionRecord.from_row(r) for r in conn.execute(q)]
 
     def get_version(self, name: str, version: int | None = None) -> DatasetVersionRecord:
@@ -42,7 +42,7 @@ class CatalogMixin(StoreBase):
         q = sa.select(dataset_versions).where(dataset_versions.c.name == name)
         q = q.where(dataset_versions.c.deleted_at.is_(None)).order_by(dataset_versions.c.version.desc()).limit(
             1) if version is None else q.where(dataset_versions.c.version == int(version))
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             row = conn.execute(q).first()
         if row is None:
             which = "any version" if version is None else f"version {version}"

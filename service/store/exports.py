@@ -40,13 +40,13 @@ class ExportsMixin(StoreBase):
 
     def get_export(self, name: str, version: int, fmt: str) -> ExportRecord | None:
         """The stored export of version ``version`` of ``name`` in format ``fmt``, or None."""
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             row = conn.execute(self._exports_query(name, version).where(dataset_exports.c.format == fmt)).first()
         return None if row is None else _record(row)
 
     def list_exports(self, name: str, version: int) -> list[ExportRecord]:
         """Every stored export of a version, by format."""
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             rows = conn.execute(self._exports_query(name, version).order_by(dataset_exports.c.format)).all()
         return [_record(r) for r in rows]
 

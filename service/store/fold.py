@@ -31,7 +31,7 @@ class FoldMixin(StoreBase):
 
     def fold_position(self, job_id: str) -> FoldPosition:
         """The job's fold cursor, fold file and task counters."""
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             j = conn.execute(sa.select(jobs).where(jobs.c.id == job_id)).one()._mapping
         fold = None if j["fold_uri"] is None else StoredFile(j["fold_uri"], int(j["fold_bytes"]), j["fold_sha256"])
         return FoldPosition(int(j["folded"]), fold, int(j["shards"]), int(j["shards_done"]), int(j["shards_skipped"]))
@@ -39,7 +39,7 @@ class FoldMixin(StoreBase):
     def shard_result(self, job_id: str, task: int) -> StoredResult | None:
         """The result of task ``task`` if it is done (its task row done, its result recorded), else None."""
         r = shard_results.c
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             row = conn.execute(
                 sa.select(r.uri, r.bytes, r.sha256, r.payload)
                 .join(tasks, sa.and_(tasks.c.job_id == r.job_id, tasks.c.shard_index == r.shard_index,
@@ -53,7 +53,7 @@ class FoldMixin(StoreBase):
     def shard_files(self, job_id: str) -> list[tuple[int, StoredResult]]:
         """Every recorded ``(task, result)`` of a job, in task order (for tests and tools)."""
         r = shard_results.c
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             rows = conn.execute(
                 sa.select(r.shard_index, r.uri, r.bytes, r.sha256, r.payload).where(r.job_id == job_id)
                 .order_by(r.shard_index)
@@ -104,7 +104,7 @@ class FoldMixin(StoreBase):
         t = tasks.c
         medium = (t.shard_index // shards_per_medium).label("medium")  # integer division on both databases
         lo, hi = offset * shards_per_medium, (offset + limit) * shards_per_medium
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             folded = conn.execute(sa.select(jobs.c.folded).where(jobs.c.id == job_id)).scalar_one()
             rows = conn.execute(
                 sa.select(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import uuid
+from functools import cached_property
 from typing import Protocol
 
 import sqlalchemy as sa
@@ -18,6 +19,9 @@ from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobStat
 from service.store.tables import dataset_versions, jobs, tasks
 
 __all__ = ["JobsMixin", "SpecLike"]
+
+_COUNTS = ("done", "running", "stalled", "failed", "cancelled", "photons", "photons_done")
+"""Columns of the shard counts in :meth:`JobsMixin._progress_statement`."""
 
 
 class SpecLike(Protocol):
@@ -125,7 +129,7 @@ class JobsMixin(StoreBase):
         return self._job_by_key(key)
 
     def _job_by_key(self, key: str) -> JobRecord | None:
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             row = conn.execute(sa.select(jobs).where(jobs.c.idempotency_key == key)).first()
         return None if row is None else JobRecord.from_row(row)
 
@@ -140,7 +144,7 @@ class JobsMixin(StoreBase):
 
     def get_job(self, job_id: str) -> JobRecord:
         """The job with this id (raises :class:`JobNotFound`)."""
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             row = conn.execute(sa.select(jobs).where(jobs.c.id == job_id)).first()
         if row is None:
             raise JobNotFound(job_id)
@@ -151,7 +155,7 @@ class JobsMixin(StoreBase):
         q = sa.select(jobs).order_by(jobs.c.created_at.desc(), jobs.c.id).limit(limit).offset(offset)
         if state is not None:
             q = q.where(jobs.c.state == JobState(state))
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             return [JobRecord.from_row(r) for r in conn.execute(q)]
 
     def cancel(self, job_id: str) -> JobRecord:
@@ -170,40 +174,56 @@ class JobsMixin(StoreBase):
                 self._end_job(conn, job_id, JobState.CANCELLED, error="cancelled")
         return self.get_job(job_id)
 
+    @cached_property
+    def _progress_statement(self) -> sa.Select:
+        """The one read of :meth:`job_progress`: the job row, the database clock, its shard counts
+        and its merge's state in one statement (one round trip; built once per store: building
+        the expression cost more than running it). Parameter ``job_id``."""
+        now = self._now()
+        t = tasks.c
+        job_id = sa.bindparam("job_id")
+        live = sa.and_(t.state == TaskState.LEASED, t.lease_expires_at >= now)
+        fresh = 2 * now <= t.lease_expires_at + t.heartbeat_at  # now - heartbeat <= lease / 2
+        counts = sa.select(
+            t.job_id,
+            sa.func.count().filter(t.state == TaskState.DONE).label("done"),
+            sa.func.count().filter(live, fresh).label("running"),
+            sa.func.count().filter(live, sa.not_(fresh)).label("stalled"),
+            sa.func.count().filter(t.state == TaskState.FAILED).label("failed"),
+            sa.func.count().filter(t.state == TaskState.CANCELLED).label("cancelled"),
+            sa.func.coalesce(sa.func.sum(t.photons), 0).label("photons"),
+            sa.func.coalesce(sa.func.sum(t.photons).filter(t.state == TaskState.DONE), 0).label("photons_done"),
+        ).where(t.job_id == job_id, t.kind == TaskKind.SHARD).group_by(t.job_id).subquery("shard_counts")
+        merge = tasks.alias("merge_task")
+        return (
+            sa.select(jobs, now.label("now"), *(counts.c[k] for k in _COUNTS), merge.c.state.label("merge_state"))
+            .select_from(jobs.outerjoin(counts, counts.c.job_id == jobs.c.id).outerjoin(
+                merge, sa.and_(merge.c.job_id == jobs.c.id, merge.c.kind == TaskKind.MERGE)))
+            .where(jobs.c.id == job_id)
+        )
+
     def progress(self, job_id: str) -> JobProgress:
-        """Shard counts, photons done, rate (photons/s since the first claim) and ETA.
+        """The job's :class:`JobProgress` (see :meth:`job_progress`)."""
+        return self.job_progress(job_id)[1]
+
+    def job_progress(self, job_id: str) -> tuple[JobRecord, JobProgress]:
+        """The job and its progress, read through one connection: shard counts, photons done,
+        rate (photons/s since the first claim) and ETA.
 
         Running shards hold a live lease whose worker heartbeat within half the lease (two
         heartbeat periods); a live lease without that is *stalled* (worker killed or hung: the
         shard is claimed again when the lease expires). ETA = (photons of the job - photons
         done) / rate, from the photons heartbeats report, so it exists before any shard ends.
         """
-        now = self._now()
-        t = tasks.c
-        live = sa.and_(t.state == TaskState.LEASED, t.lease_expires_at >= now)
-        fresh = 2 * now <= t.lease_expires_at + t.heartbeat_at  # now - heartbeat <= lease / 2
-        with self.engine.connect() as conn:
-            job = conn.execute(sa.select(jobs, now.label("now")).where(jobs.c.id == job_id)).first()
-            if job is None:
-                raise JobNotFound(job_id)
-            counts = conn.execute(
-                sa.select(
-                    sa.func.count().filter(t.state == TaskState.DONE),
-                    sa.func.count().filter(live, fresh),
-                    sa.func.count().filter(live, sa.not_(fresh)),
-                    sa.func.count().filter(t.state == TaskState.FAILED),
-                    sa.func.count().filter(t.state == TaskState.CANCELLED),
-                    sa.func.coalesce(sa.func.sum(t.photons), 0),
-                    sa.func.coalesce(sa.func.sum(t.photons).filter(t.state == TaskState.DONE), 0),
-                ).where(t.job_id == job_id, t.kind == TaskKind.SHARD)
-            ).one()
-            merge_state = conn.execute(
-                sa.select(t.state).where(t.job_id == job_id, t.kind == TaskKind.MERGE)
-            ).scalar_one()
+        with self._read() as conn:
+            job = conn.execute(self._progress_statement, {"job_id": job_id}).first()
+        if job is None:
+            raise JobNotFound(job_id)
         m = job._mapping
-        done, running, stalled, failed, cancelled, photons, photons_done_shards = (int(x) for x in counts)
+        merge_state = m["merge_state"]
+        done, running, stalled, failed, cancelled, photons, photons_done_shards = (int(m[k] or 0) for k in _COUNTS)
         skipped = int(m["shards_skipped"])
-        per_medium = int(json.loads(m["spec_json"]).get("shards") or total) or 1  # tasks = media x shards
+        per_medium = int(json.loads(m["spec_json"]).get("shards") or m["shards"]) or 1  # tasks = media x shards
         cancelled -= skipped  # cancelled by an early stop (target met): counted apart
         total = int(m["shards"])
         end = m["finished_at"] if m["finished_at"] is not None else m["now"]
@@ -220,7 +240,7 @@ class JobsMixin(StoreBase):
             eta = None  # failed or cancelled: it will not finish
         elif rate and expected is not None:
             eta = max(0.0, expected - photons) / rate
-        return JobProgress(
+        return JobRecord.from_row(job), JobProgress(
             job_id=job_id, state=state, shards_total=total,
             shards_queued=total - done - running - stalled - failed - cancelled - skipped, shards_running=running,
             shards_stalled=stalled, shards_done=done, shards_failed=failed, shards_cancelled=cancelled,

@@ -70,7 +70,7 @@ class LifecycleMixin(StoreBase):
     def tombstone(self, name: str, version: int) -> DatasetVersionRecord:
         """The tombstone of a deleted version (:class:`VersionNotFound` if it is not deleted)."""
         v = dataset_versions.c
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             row = conn.execute(sa.select(dataset_versions).where(
                 v.name == name, v.version == int(version), v.deleted_at.is_not(None))).first()
         if row is None:

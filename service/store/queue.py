@@ -296,7 +296,7 @@ class QueueMixin(StoreBase):
         """Tasks of live jobs that are or may become claimable: queued (a retry backing off
         included), leased (running, or a lease that will expire) and waiting merges. Zero means
         no work can appear without a new submission (``bssrdf worker --once`` exits then)."""
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             return int(conn.execute(
                 sa.select(sa.func.count()).select_from(tasks).join(jobs, jobs.c.id == tasks.c.job_id).where(
                     jobs.c.state.in_(list(ACTIVE_JOB_STATES)),
@@ -328,7 +328,7 @@ class QueueMixin(StoreBase):
             tasks.c.lease_expires_at < now,
             tasks.c.attempts >= tasks.c.max_attempts,
         )
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             job_ids = conn.execute(sa.select(tasks.c.job_id).where(exhausted).distinct()).scalars().all()
         rows = []
         for job_id in job_ids:

@@ -30,14 +30,15 @@ class JobStore(JobsMixin, QueueMixin, FoldMixin, CatalogMixin, ExportsMixin, Lif
     ``JobStore(url)`` works for ``sqlite:///FILE`` (one host) and ``postgresql+psycopg://...``
     (many hosts) with the same code; ``migrate=True`` applies the Alembic migrations on open.
     ``fold_batch``: done shards in task order the merge waits for before a fold round
-    (``BSSRDF_FOLD_BATCH``). Create one store per process.
+    (``BSSRDF_FOLD_BATCH``); ``pool_size``: connections kept open
+    (:func:`service.store.engine.make_engine`). Create one store per process.
     """
 
     def __init__(
         self, url: str, *, max_attempts: int = 3, retry_policy: RetryPolicy = RetryPolicy(),
-        migrate: bool = True, fold_batch: int = 8,
+        migrate: bool = True, fold_batch: int = 8, pool_size: int = 2,
     ) -> None:
-        super().__init__(url, max_attempts=max_attempts, retry_policy=retry_policy)
+        super().__init__(url, max_attempts=max_attempts, retry_policy=retry_policy, pool_size=pool_size)
         if fold_batch < 1:
             raise ValueError(f"fold_batch must be >= 1; received {fold_batch}")
         self.fold_batch = fold_batch
@@ -58,7 +59,7 @@ class JobStore(JobsMixin, QueueMixin, FoldMixin, CatalogMixin, ExportsMixin, Lif
 
     def ping(self) -> None:
         """Raise if the database cannot be reached or is not migrated (for ``/readyz``)."""
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             conn.execute(sa.select(sa.func.count()).select_from(jobs)).scalar_one()
 
     def metrics(self) -> dict[str, object]:
@@ -69,7 +70,7 @@ class JobStore(JobsMixin, QueueMixin, FoldMixin, CatalogMixin, ExportsMixin, Lif
         ran out and were re-claimed or failed; ``photons_simulated``: photons of completed shards.
         """
         t = tasks.c
-        with self.engine.connect() as conn:
+        with self._read() as conn:
             by_state = dict(conn.execute(sa.select(jobs.c.state, sa.func.count()).group_by(jobs.c.state)).all())
             claimed, expired, shards_done, merges_done, photons = conn.execute(
                 sa.select(

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Header, Query, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service.api.deps import AuthDep, JobDep, ReadAuthDep, SettingsDep, StorageDep, StoreDep
+from service.api.deps import AuthDep, JobDep, JobIdPath, ReadAuthDep, SettingsDep, StorageDep, StoreDep, lookup_job
 from service.api.errors import error_responses
 from service.api.limits import spec_limit_problems
 from schema import parse_spec
@@ -92,10 +92,11 @@ def list_jobs(
 
 @router.get("/{job_id}", summary="Read a job and its progress", response_model=JobPublic,
             responses=error_responses(401, 404, 503))
-def get_job(_token: ReadAuthDep, job: JobDep, store: StoreDep) -> JobPublic:
+def get_job(_token: ReadAuthDep, job_id: JobIdPath, store: StoreDep) -> JobPublic:
     """State, shards queued / running / done / failed, photons done, rate, ETA, error, and the
     dataset name and version once it succeeded."""
-    return JobPublic.from_record(job, store.progress(job.id))
+    # The job and its progress in one read (the status poll of every client and of bssrdf run).
+    return JobPublic.from_record(*lookup_job(job_id, store.job_progress))
 
 
 @router.get("/{job_id}/media", summary="Progress per medium", response_model=MediumList,
