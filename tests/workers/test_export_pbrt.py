@@ -16,7 +16,6 @@ from scipy import integrate
 from schema import parse_spec
 from schema.bins import pbrt_radial_edges
 from tests.support.stats import assert_samples_match_pdf
-from tests.support.tables import bitwise_equal
 from workers.catmull_rom import catmull_rom
 from workers.exports.pbrt import pbrt_tables, write_pbrt
 from workers.exports.pbrt_io import read_pbrt
@@ -66,7 +65,7 @@ def test_json_and_binary_round_trip(table, source, tmp_path):
     assert names == ["pbrt-exits-g+0.5000-eta1.3300.json", "pbrt-exits-g+0.5000-eta1.3300.bin"]
     for name in names:
         back = read_pbrt(tmp_path / name)
-        assert bitwise_equal(back, table), name
+        assert back.equals(table), name
     raw = (tmp_path / names[1]).read_bytes()
     assert raw[:8] == b"BSSRDFTB"
     with pytest.raises(ValueError, match="not a pbrt table"):
