@@ -196,9 +196,6 @@ class Worker:
                        fields: dict) -> None:
         """Run task ``lease.shard_index`` (shard s of medium m, schema.media), write its tally as
         a file in the job's staging area, and commit the file's URI, size and sha256."""
-        # Deferred, not a cycle: workers.sweep imports torch (seconds), and building the `bssrdf`
-        # parser imports this module; only a process that runs a shard pays for it.
-        from workers.sweep import run_task
 
         def progress(n: int) -> None:
             photons[0] += int(n)
@@ -208,20 +205,30 @@ class Worker:
             if self.stopping.is_set():
                 raise _Abandon("stopping")
 
-        tally = run_task(self._spec(lease), lease.shard_index, progress=progress)
+        payload, n_photons, elapsed_s = self._walk(lease, progress)
         if beat.lost.is_set():
             raise _Abandon("lease lost")
         files = JobFiles(self.storage, lease.job_id)
         # One file per attempt (named by the lease token): a stale worker never overwrites the
         # file a commit recorded.
-        ref = files.write(f"shards/{lease.shard_index:08d}-{lease.token}.tally", tally.to_bytes())
+        ref = files.write(f"shards/{lease.shard_index:08d}-{lease.token}.tally", payload)
         try:
-            self.store.complete_shard(lease, ref, photons=tally.photons, elapsed_s=tally.elapsed_s)
+            self.store.complete_shard(lease, ref, photons=n_photons, elapsed_s=elapsed_s)
         except BaseException:
             files.delete(ref)  # not recorded: nobody will read it
             raise
-        log.info("shard done", extra={**fields, "photons": tally.photons, "elapsed_s": round(tally.elapsed_s, 3),
+        log.info("shard done", extra={**fields, "photons": n_photons, "elapsed_s": round(elapsed_s, 3),
                                       "payload_bytes": ref.bytes})
+
+    def _walk(self, lease: Lease, progress) -> tuple[bytes, int, float]:
+        """Walk the leased shard: its tally's bytes, its photons and the walk's seconds
+        (``service.bench_fleet`` puts an instant fake here to load the queue alone)."""
+        # Deferred, not a cycle: workers.sweep imports torch (seconds), and building the `bssrdf`
+        # parser imports this module; only a process that runs a shard pays for it.
+        from workers.sweep import run_task
+
+        tally = run_task(self._spec(lease), lease.shard_index, progress=progress)
+        return tally.to_bytes(), tally.photons, tally.elapsed_s
 
     def _process_merge(self, lease: Lease, beat: _Heartbeat, fields: dict) -> None:
         t0 = time.perf_counter()

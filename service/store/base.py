@@ -21,11 +21,11 @@ class StoreBase:
     """Engine, transaction helper and the operations every mixin needs."""
 
     def __init__(self, url: str, *, max_attempts: int = 3, retry_policy: RetryPolicy = RetryPolicy(),
-                 pool_size: int = 2) -> None:
+                 pool_size: int = 2, max_overflow: int | None = None) -> None:
         if max_attempts < 1:
             raise ValueError(f"max_attempts must be >= 1; received {max_attempts}")
         self.url = url
-        self.engine: Engine = make_engine(url, pool_size)
+        self.engine: Engine = make_engine(url, pool_size, max_overflow)
         self.max_attempts = max_attempts
         self.retry_policy = retry_policy
 

@@ -100,12 +100,12 @@ def _sqlite_hooks(engine: Engine) -> None:
         conn.exec_driver_sql("BEGIN" if conn.get_execution_options().get(READ_ONLY) else "BEGIN IMMEDIATE")
 
 
-def make_engine(url: str, pool_size: int = 2) -> Engine:
+def make_engine(url: str, pool_size: int = 2, max_overflow: int | None = None) -> Engine:
     """An engine for ``url`` (``sqlite:///path`` or ``postgresql+psycopg://...``).
 
     Create one per process: engines are not shared across ``fork()``. ``pool_size`` connections
-    are kept open; beyond them up to 4 (PostgreSQL) or 8 (SQLite) more are opened when needed and
-    closed when returned. A worker needs 2 (its loop and its heartbeat); the API, serving
+    are kept open; beyond them up to ``max_overflow`` (default 4 on PostgreSQL, 8 on SQLite) more
+    are opened when needed and closed when returned. A worker needs 2 (its loop and its heartbeat); the API, serving
     requests concurrently, keeps more (``service.api.deps.API_POOL_SIZE``): a PostgreSQL
     connection opened and closed per request costs a server process fork each (status reads'
     p99 from 8 to over 100 ms with 4 concurrent clients, BENCHMARKS.md).
@@ -117,13 +117,14 @@ def make_engine(url: str, pool_size: int = 2) -> Engine:
                 f"the job store needs an SQLite file shared by worker processes; received {url!r}"
             )
         engine = sa.create_engine(
-            parsed, pool_size=pool_size, max_overflow=8, connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
+            parsed, pool_size=pool_size, max_overflow=8 if max_overflow is None else max_overflow,
+            connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
         )
         _sqlite_hooks(engine)
         return engine
     if parsed.get_backend_name() == "postgresql":
-        return sa.create_engine(parsed, pool_pre_ping=True, pool_size=pool_size, max_overflow=4,
-                                connect_args=PG_CONNECT_ARGS)
+        return sa.create_engine(parsed, pool_pre_ping=True, pool_size=pool_size,
+                                max_overflow=4 if max_overflow is None else max_overflow, connect_args=PG_CONNECT_ARGS)
     raise ValueError(
         f"database URL must be sqlite:///FILE or postgresql+psycopg://...; received {url!r}"
     )

@@ -30,15 +30,16 @@ class JobStore(JobsMixin, QueueMixin, FoldMixin, CatalogMixin, ExportsMixin, Lif
     ``JobStore(url)`` works for ``sqlite:///FILE`` (one host) and ``postgresql+psycopg://...``
     (many hosts) with the same code; ``migrate=True`` applies the Alembic migrations on open.
     ``fold_batch``: done shards in task order the merge waits for before a fold round
-    (``BSSRDF_FOLD_BATCH``); ``pool_size``: connections kept open
-    (:func:`service.store.engine.make_engine`). Create one store per process.
+    (``BSSRDF_FOLD_BATCH``); ``pool_size``: connections kept open, ``max_overflow``: more opened
+    when needed (:func:`service.store.engine.make_engine`). Create one store per process.
     """
 
     def __init__(
         self, url: str, *, max_attempts: int = 3, retry_policy: RetryPolicy = RetryPolicy(),
-        migrate: bool = True, fold_batch: int = 8, pool_size: int = 2,
+        migrate: bool = True, fold_batch: int = 8, pool_size: int = 2, max_overflow: int | None = None,
     ) -> None:
-        super().__init__(url, max_attempts=max_attempts, retry_policy=retry_policy, pool_size=pool_size)
+        super().__init__(url, max_attempts=max_attempts, retry_policy=retry_policy, pool_size=pool_size,
+                         max_overflow=max_overflow)
         if fold_batch < 1:
             raise ValueError(f"fold_batch must be >= 1; received {fold_batch}")
         self.fold_batch = fold_batch
