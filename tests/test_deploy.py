@@ -1,4 +1,6 @@
-"""deploy/ checked by the tools that run here: every YAML file parses (and the Kubernetes objects
+"""deploy/ checked by the tools that run here: the Dockerfile parsed by BuildKit's parser (the
+`dockerfile` wheel: pinned base image, CPU torch pinned before the package, a non-root user, exec-form
+CMD; every image of compose and Kubernetes pinned, none `latest`; the API probed), every YAML file parses (and the Kubernetes objects
 have their kind, name and the fixes the issue asked for), the SLURM script is valid bash with the
 batch-shell signal, and its worker command runs locally against a real store."""
 
@@ -58,3 +60,81 @@ def test_slurm_script_is_valid_bash_signals_the_batch_shell_and_its_workers_run(
     out = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stderr.count('"worker stopped"') == 2, out.stderr[-2000:]
+
+
+# --- the Dockerfile, parsed by BuildKit's own parser (the `dockerfile` wheel) ---
+
+def _dockerfile():
+    import dockerfile
+
+    return dockerfile.parse_file(str(DEPLOY / "Dockerfile"))
+
+
+def _image_refs() -> list[tuple[str, str]]:
+    """(where, image) of every image the deploy files name: FROM lines, compose, Kubernetes."""
+    refs = [("Dockerfile", c.value[0]) for c in _dockerfile() if c.cmd == "FROM"]
+    for path in sorted(DEPLOY.rglob("*.yaml")):
+        for doc in yaml.safe_load_all(path.read_text()):
+            stack = [doc]
+            while stack:
+                node = stack.pop()
+                if isinstance(node, dict):
+                    refs += [(path.name, v) for k, v in node.items() if k == "image" and isinstance(v, str)]
+                    stack += list(node.values())
+                elif isinstance(node, list):
+                    stack += node
+    return refs
+
+
+def test_every_image_is_pinned_to_a_version_never_latest():
+    import re
+
+    refs = _image_refs()
+    assert len(refs) >= 5, refs
+    for where, ref in refs:
+        last = ref.split("@")[0].split("/")[-1]
+        tag = last.partition(":")[2]
+        assert tag and tag != "latest", f"{where}: image {ref!r} has no pinned tag"
+        # A release, not a moving line: python:3.11.7-slim-bookworm (not 3.11-slim), postgres:16.6-bookworm
+        # (not 16), bssrdf-db:0.1.0.
+        patch = ref.startswith("python:")
+        assert re.match(r"\d+\.\d+\.\d+" if patch else r"\d+\.\d+", tag), f"{where}: {ref!r} is a moving tag"
+
+
+def test_dockerfile_installs_pinned_cpu_torch_before_the_package_and_runs_as_a_user():
+    cmds = _dockerfile()
+    runs = [(i, c.value[0]) for i, c in enumerate(cmds) if c.cmd == "RUN"]
+    torch = [(i, r) for i, r in runs if "torch" in r]
+    package = [i for i, r in runs if "pip install ." in r]
+    assert len(torch) == 1 and len(package) == 1, runs
+    i_torch, torch_run = torch[0]
+    assert "torch==" in torch_run and "--index-url https://download.pytorch.org/whl/cpu" in torch_run, torch_run
+    assert i_torch < package[0], "torch must come from the CPU index before the package pulls a default build"
+    # The same torch as the package pins, so `pip install .` finds it installed and pulls no other build.
+    import tomllib
+
+    deps = tomllib.loads((DEPLOY.parent / "pyproject.toml").read_text())["project"]["dependencies"]
+    (pin,) = [d.replace(" ", "") for d in deps if d.replace(" ", "").startswith("torch")]
+    assert pin.startswith("torch==") and pin in torch_run.split(), (pin, torch_run)
+    users = [c.value[0] for c in cmds if c.cmd == "USER"]
+    assert users and users[-1] not in ("root", "0"), users
+    assert not any(c.cmd == "ADD" for c in cmds), "COPY, not ADD"
+    for c in cmds:
+        if c.cmd in ("CMD", "ENTRYPOINT"):
+            assert c.json, f"{c.cmd} in exec (JSON) form, so SIGTERM reaches the worker: {c.original}"
+        if c.cmd == "WORKDIR":
+            assert c.value[0].startswith("/"), c.original
+        if c.cmd == "RUN" and "|" in c.value[0]:
+            assert "pipefail" in c.value[0], f"a pipe without pipefail hides a failed step: {c.original}"
+        if c.cmd == "RUN" and "apt-get install" in c.value[0]:
+            assert "--no-install-recommends" in c.value[0] and "rm -rf /var/lib/apt/lists" in c.value[0], c.original
+
+
+def test_the_api_has_a_health_probe_everywhere_it_runs():
+    has_healthcheck = any(c.cmd == "HEALTHCHECK" for c in _dockerfile())
+    compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
+    assert has_healthcheck or "/healthz" in str(compose["services"]["api"]["healthcheck"]["test"])
+    api = next(d for d in yaml.safe_load_all((DEPLOY / "k8s" / "api.yaml").read_text()) if d["kind"] == "Deployment")
+    (container,) = api["spec"]["template"]["spec"]["containers"]
+    assert container["readinessProbe"]["httpGet"]["path"] == "/readyz"
+    assert container["livenessProbe"]["httpGet"]["path"] == "/healthz"
