@@ -108,7 +108,7 @@ def _rd_figure(source, radial, summary, e, i, series, title) -> Figure:
     if inc == 0.0:  # the models' line styles, in black (each series draws them in its colour)
         handles += [Line2D([], [], ls="--", color="k", lw=0.9), Line2D([], [], ls=":", color="k", lw=1.1)]
         labels += ["photon beam diffusion", "classical dipole"]
-    fig.legend(handles, labels, loc="outside right upper", fontsize=7)
+    fig.legend(handles, labels, loc="outside right center", fontsize=7)  # centred: clear of the suptitle
     fig.suptitle(title + ("  (sweep media have sigma_t = 1/mm: radii are optical)" if source.spec.is_sweep else ""))
     return fig
 
