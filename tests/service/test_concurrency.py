@@ -12,6 +12,7 @@ from pathlib import Path
 
 from service.store import JobState, TaskKind
 from tests.service.conftest import FakeSpec
+from tests.support.files import stored
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -62,3 +63,59 @@ def test_threads_race_without_double_claims(store, db_url):
     for t in threads:
         t.join(60)
     assert len(claimed) == 40 and len(set(claimed)) == 40
+
+
+class _SlowPublisher:
+    """A Publisher whose move takes a while inside the transaction, as a real rename of a
+    version directory on a shared filesystem can: it widens the window in which concurrent
+    publishers of one name race for the next version number."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def uri_for(self, version: int) -> str:
+        return f"{self.name}/v{version}"
+
+    def publish(self, version: int) -> None:
+        time.sleep(0.02)
+
+
+def test_concurrent_publishes_of_one_name_all_get_consecutive_versions(store, db_url):
+    from service.store import JobStore
+
+    n = 16  # more than the 10 version-number retries the allocation once had
+    for i in range(n):
+        store.submit(FakeSpec("same-name", shards=1, seed=i))
+    leases = []
+    for _ in range(n):  # each shard done, then its merge (claimed first) leased
+        shard = store.claim("prep", 60)
+        store.complete_shard(shard, stored(f"tally {shard.job_id}".encode()), photons=1, elapsed_s=0.0)
+        leases.append(store.claim("prep", 60))
+    assert {lease.kind for lease in leases} == {TaskKind.MERGE}
+    barrier = threading.Barrier(n)
+    versions: dict[str, int] = {}
+    errors: list[BaseException] = []
+
+    def publisher(lease):
+        own = JobStore(db_url, migrate=False)
+        try:
+            barrier.wait(30)
+            versions[lease.job_id] = own.complete_merge(lease, "same-name", {"job": lease.job_id},
+                                                        _SlowPublisher("same-name"))
+        except BaseException as exc:  # reported below, with the versions that were allocated
+            errors.append(exc)
+        finally:
+            own.dispose()
+
+    threads = [threading.Thread(target=publisher, args=(lease,)) for lease in leases]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not errors, (errors, versions)
+    assert sorted(versions.values()) == list(range(1, n + 1))
+    assert [v.version for v in store.list_versions("same-name")] == list(range(1, n + 1))
+    for job_id, version in versions.items():
+        job = store.get_job(job_id)
+        assert job.state == JobState.SUCCEEDED and job.dataset_version == version
+        assert store.get_version("same-name", version).job_id == job_id
