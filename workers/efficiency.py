@@ -12,6 +12,12 @@ the smallest hybrid / best ratio over the bins in which every estimator saw at l
 ``--min-events`` events (fewer make the variance itself too noisy to compare).
 Variances are per-photon for exits and hybrid, from 32 batches for connections (whose ratios
 therefore scatter by ~25 %).  A bin an estimator saw no event in has no efficiency (nan).
+
+``--json`` prints the rows as a list of objects, the shape of the two-estimator tool with one more
+estimator key each: per bin ``component, r_lo_mm, r_hi_mm, Rd_r_<est>, eff_<est>, ratio``
+(connections / exits), plus ``theta_s_lo, theta_s_hi, Rd_<est>`` (the same value as Rd_r_<est>),
+``events_<est>, ratio_hybrid``; the last object holds ``cpu_s_<est>, photons_<est>, medium,
+incidence_deg``; <est> is each of hybrid, exits, connections.
 """
 
 from __future__ import annotations
@@ -75,6 +81,9 @@ def efficiency(medium: str, photons: dict[str, int], radial: dict, incidence: fl
                 rows.append({
                     "component": comp, "r_lo_mm": float(edges[i]), "r_hi_mm": float(edges[i + 1]),
                     "theta_s_lo": float(theta[j]), "theta_s_hi": float(theta[j + 1]),
+                    # Rd of the bin per unit area [1/mm^2] under its name before theta_s sectors
+                    # (Rd_r_<estimator>, kept for readers of the JSON) and as Rd_<estimator>.
+                    **{f"Rd_r_{est}": float(m[est][i, j]) for est in ESTIMATORS},
                     **{f"Rd_{est}": float(m[est][i, j]) for est in ESTIMATORS},
                     **{f"events_{est}": int(events[est][i, j]) for est in ESTIMATORS},
                     **{f"eff_{est}": e[est] for est in ESTIMATORS},

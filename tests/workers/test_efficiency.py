@@ -3,9 +3,10 @@ standard errors and CPU time, and the per-bin summary of the hybrid's bar."""
 
 from __future__ import annotations
 
+import json
 import math
 
-from workers.efficiency import ESTIMATORS, efficiency, worst_hybrid_ratio
+from workers.efficiency import ESTIMATORS, efficiency, main, worst_hybrid_ratio
 
 
 def test_efficiency_rows_per_spatial_bin_and_the_summary():
@@ -28,3 +29,23 @@ def test_efficiency_rows_per_spatial_bin_and_the_summary():
     assert n == len(eligible) > 0 and worst == min(r["ratio_hybrid"] for r in eligible)
     none, count = worst_hybrid_ratio(rows, "single", 10**9)
     assert math.isnan(none) and count == 0
+
+
+def test_json_keeps_the_two_estimator_keys_and_adds_the_hybrid(capsys):
+    """`--json` has the shape it had before the hybrid (Rd_r_exits, Rd_r_connections, eff_*,
+    ratio; cpu_s_* and photons_* in the last object), with hybrid keys beside them."""
+    argv = ["--medium", "M2", "--json", "--radial-count", "2", "--photons-exits", "2000",
+            "--photons-hybrid", "2000", "--photons-connections", "100"]  # fmt: skip
+    assert main(argv) == 0
+    rows = json.loads(capsys.readouterr().out)
+    info = rows.pop()
+    old_row = {"component", "r_lo_mm", "r_hi_mm", "Rd_r_exits", "Rd_r_connections", "eff_exits", "eff_connections", "ratio"}
+    old_info = {"cpu_s_exits", "cpu_s_connections", "photons_exits", "photons_connections"}
+    new_row = {"Rd_r_hybrid", "eff_hybrid", "ratio_hybrid", "theta_s_lo", "theta_s_hi"}
+    new_row |= {f"{key}_{e}" for key in ("Rd", "events") for e in ESTIMATORS}
+    assert len(rows) == 2 * 2
+    for r in rows:
+        assert set(r) == old_row | new_row
+        assert all(r[f"Rd_r_{e}"] == r[f"Rd_{e}"] for e in ESTIMATORS)
+    assert set(info) == old_info | {"cpu_s_hybrid", "photons_hybrid", "medium", "incidence_deg"}
+    assert info["photons_exits"] == 2000 and info["photons_connections"] == 100
