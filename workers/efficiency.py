@@ -3,11 +3,11 @@
 Efficiency = 1 / (variance x CPU seconds): the inverse of the CPU time needed for a unit
 variance.  Each estimator (hybrid, the default; exits; connections) runs alone on the same medium
 (M1 of the engine issue by default: sigma_t 10/mm, albedo 0.99, g 0.9, eta 1.3; M2 with
---medium M2) at the given incidence; the table lists, per radial bin and component (single,
-multiple), Rd(r) of each and their efficiencies, the ratio connections / exits (> 1:
+--medium M2) at the given incidence; the table (Markdown, for BENCHMARKS.md) lists, per spatial bin and
+component (single, multiple), the events each estimator saw, Rd of each and their efficiencies, the ratio connections / exits (> 1:
 connections win) and the hybrid's efficiency over the better of the two (the bar: >= 0.5).
 Spatial bins are radial rings at normal incidence and (r, theta_s) sectors at oblique incidence
-(``--theta-s``, default 4 there), one direction bin each; the last line gives, per component,
+(``--theta-s``, default 4 there), one direction bin each; the last lines give, per component,
 the smallest hybrid / best ratio over the bins in which every estimator saw at least
 ``--min-events`` events (fewer make the variance itself too noisy to compare).
 Variances are per-photon for exits and hybrid, from 32 batches for connections (whose ratios
@@ -35,7 +35,7 @@ from schema import SimulationSpec
 from .bench import MEDIA
 from .simulate import simulate
 
-__all__ = ["ESTIMATORS", "efficiency", "worst_hybrid_ratio", "main"]
+__all__ = ["ESTIMATORS", "efficiency", "table", "worst_hybrid_ratio", "main"]
 
 ESTIMATORS = ("hybrid", "exits", "connections")
 
@@ -103,6 +103,39 @@ def worst_hybrid_ratio(rows: list[dict], component: str, min_events: int) -> tup
     return (min(ratios), len(ratios)) if ratios else (float("nan"), 0)
 
 
+def _bin_line(r: dict, min_events: int) -> str:
+    theta = f"{np.degrees(r['theta_s_lo']):.0f} - {np.degrees(r['theta_s_hi']):.0f}"
+    events = " / ".join(str(r[f"events_{est}"]) for est in ESTIMATORS)
+    # Bins some estimator saw fewer than min_events events in are left out of the summary: starred.
+    star = "" if all(r[f"events_{est}"] >= min_events for est in ESTIMATORS) else " *"
+    cells = [r["component"], f"{r['r_lo_mm']:.4g} - {r['r_hi_mm']:.4g}", theta, events,
+             *(f"{r[f'Rd_r_{est}']:.4g}" for est in ESTIMATORS), *(f"{r[f'eff_{est}']:.3g}" for est in ESTIMATORS),
+             f"{r['ratio']:.3g}", f"{r['ratio_hybrid']:.3g}{star}"]  # fmt: skip
+    return "| " + " | ".join(cells) + " |"
+
+
+def table(rows: list[dict], min_events: int) -> list[str]:
+    """The rows of :func:`efficiency` (run facts last) as a Markdown table, one line per
+    (component, r, theta_s) bin as BENCHMARKS.md shows them, then the run facts and, per
+    component, the smallest hybrid / best ratio over the bins every estimator resolved."""
+    *bins, info = rows
+    lines = [
+        f"{info['medium']}, incidence {info['incidence_deg']:g} deg: "
+        + ", ".join(f"{est} {info[f'photons_{est}']} photons in {info[f'cpu_s_{est}']:.1f} CPU-s" for est in ESTIMATORS),
+        "",
+        "| component | r (mm) | theta_s (deg) | events hyb / exits / conn | Rd_r hybrid | Rd_r exits | Rd_r conn "
+        "| eff hybrid | eff exits | eff conn | conn/exits | hyb/best |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        *(_bin_line(r, min_events) for r in bins),
+        "",
+        f"Rd_r in 1/mm^2, eff = 1 / (variance x CPU s); * fewer than {min_events} events in some estimator (not in the summary).",
+    ]  # fmt: skip
+    for comp in ("single", "multiple"):
+        worst, n = worst_hybrid_ratio(bins, comp, min_events)
+        lines.append(f"{comp}: hybrid / best >= {worst:.3g} over {n} bins with >= {min_events} events in every estimator (bar 0.5)")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m workers.efficiency", description=__doc__)
     p.add_argument("--medium", default="M1", choices=sorted(MEDIA))
@@ -123,17 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.json:
         print(json.dumps(rows))
         return 0
-    info = rows.pop()
-    print(f"{a.medium}, incidence {a.incidence:g} deg: " + ", ".join(f"{est} {info[f'photons_{est}']} photons in {info[f'cpu_s_{est}']:.1f} CPU-s" for est in ESTIMATORS))
-    print(f"{'component':<9} {'r_lo':>7} {'r_hi':>7} {'theta_s':>7} {'Rd hybrid':>10} {'Rd exits':>10} {'Rd conn':>10} "
-          f"{'eff hybrid':>10} {'eff exits':>10} {'eff conn':>10} {'conn/exits':>10} {'hyb/best':>9}")  # fmt: skip
-    for r in rows:
-        print(f"{r['component']:<9} {r['r_lo_mm']:>7.4f} {r['r_hi_mm']:>7.4f} {r['theta_s_lo']:>7.3f} {r['Rd_hybrid']:>10.4g} "
-              f"{r['Rd_exits']:>10.4g} {r['Rd_connections']:>10.4g} {r['eff_hybrid']:>10.3g} {r['eff_exits']:>10.3g} "
-              f"{r['eff_connections']:>10.3g} {r['ratio']:>10.3g} {r['ratio_hybrid']:>9.3g}")  # fmt: skip
-    for comp in ("single", "multiple"):
-        worst, n = worst_hybrid_ratio(rows, comp, a.min_events)
-        print(f"{comp}: hybrid / best >= {worst:.3g} over {n} bins with >= {a.min_events} events in every estimator (bar 0.5)")
+    print("\n".join(table(rows, a.min_events)))
     return 0
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 
-from workers.efficiency import ESTIMATORS, efficiency, main, worst_hybrid_ratio
+from workers.efficiency import ESTIMATORS, efficiency, main, table, worst_hybrid_ratio
 
 
 def test_efficiency_rows_per_spatial_bin_and_the_summary():
@@ -49,3 +49,33 @@ def test_json_keeps_the_two_estimator_keys_and_adds_the_hybrid(capsys):
         assert all(r[f"Rd_r_{e}"] == r[f"Rd_{e}"] for e in ESTIMATORS)
     assert set(info) == old_info | {"cpu_s_hybrid", "photons_hybrid", "medium", "incidence_deg"}
     assert info["photons_exits"] == 2000 and info["photons_connections"] == 100
+
+
+def _row(component, r_lo, r_hi, theta_lo, theta_hi, events, ratio_hybrid):
+    row = {"component": component, "r_lo_mm": r_lo, "r_hi_mm": r_hi, "theta_s_lo": theta_lo, "theta_s_hi": theta_hi,
+           "ratio": 0.5, "ratio_hybrid": ratio_hybrid}  # fmt: skip
+    for e, n in zip(ESTIMATORS, events):
+        row |= {f"Rd_r_{e}": 0.25, f"Rd_{e}": 0.25, f"events_{e}": n, f"eff_{e}": 1e5}
+    return row
+
+
+def test_table_has_one_line_per_r_theta_s_bin_and_the_summary():
+    """At oblique incidence the printed table has a Markdown row per (component, r, theta_s)
+    bin, theta_s in degrees, events of each estimator, bins left out of the summary starred."""
+    half = math.pi
+    rows = [_row("single", 0.0, 0.02, 0.0, half, (500, 400, 300), 1.5), _row("single", 0.0, 0.02, half, 2 * half, (500, 40, 300), 0.2),
+            _row("multiple", 0.0, 0.02, 0.0, half, (500, 500, 300), 0.6), _row("multiple", 0.0, 0.02, half, 2 * half, (0, 0, 300), math.nan),
+            {f"{k}_{e}": v for e in ESTIMATORS for k, v in (("cpu_s", 1.0), ("photons", 1000))} | {"medium": "M2", "incidence_deg": 45.0}]  # fmt: skip
+    lines = table(rows, min_events=100)
+    assert lines[0].startswith("M2, incidence 45 deg: hybrid 1000 photons in 1.0 CPU-s")
+    body = [line for line in lines if line.startswith("| single") or line.startswith("| multiple")]
+    assert body == [
+        "| single | 0 - 0.02 | 0 - 180 | 500 / 400 / 300 | 0.25 | 0.25 | 0.25 | 1e+05 | 1e+05 | 1e+05 | 0.5 | 1.5 |",
+        "| single | 0 - 0.02 | 180 - 360 | 500 / 40 / 300 | 0.25 | 0.25 | 0.25 | 1e+05 | 1e+05 | 1e+05 | 0.5 | 0.2 * |",
+        "| multiple | 0 - 0.02 | 0 - 180 | 500 / 500 / 300 | 0.25 | 0.25 | 0.25 | 1e+05 | 1e+05 | 1e+05 | 0.5 | 0.6 |",
+        "| multiple | 0 - 0.02 | 180 - 360 | 0 / 0 / 300 | 0.25 | 0.25 | 0.25 | 1e+05 | 1e+05 | 1e+05 | 0.5 | nan * |",
+    ]
+    header = next(line for line in lines if line.startswith("| component"))
+    assert header.count("|") == body[0].count("|")
+    assert lines[-2:] == ["single: hybrid / best >= 1.5 over 1 bins with >= 100 events in every estimator (bar 0.5)",
+                          "multiple: hybrid / best >= 0.6 over 1 bins with >= 100 events in every estimator (bar 0.5)"]  # fmt: skip
