@@ -193,7 +193,7 @@ def format_summary(doc: dict, max_rows: int = 60) -> str:
         rel = "no estimate" if w["rel_stderr"] is None else f"{w['rel_stderr']:.3g}"
         lines.append(f"target {'reached' if t['reached'] else 'NOT reached'} with {t['photons']} photons per angle and channel "
                      f"({t['met']} of {t['checks']} checks met; worst: {what}, {w['estimator']}, {w['channel']}, "
-                     f"theta_i {w['incidence_deg']:g}: relative error {rel}, limit {w['limit']:g})")  # fmt: skip
+                     f"theta_i {w['incidence_deg']:g}: relative error {rel} on {w['dof']} dof, limit {w['limit']:g})")  # fmt: skip
     return "\n".join(lines)
 
 

@@ -22,6 +22,15 @@ Rd against ``target.rel_stderr``; Rd(r) of every radial bin with r_lo >= r_min_m
 r_hi <= r_max_mm against ``target.radial.rel_stderr``.  rel_stderr = stderr / |estimate|; an
 estimate of 0 or a NaN standard error (no contributing event) never meets its limit.
 
+A standard error counts only when it rests on at least MIN_UNITS = 30 independent units, i.e.
+``dof = units - 1 >= MIN_DOF = 29`` (workers.tally: photons for the exit tally and the hybrid,
+batches for connections).  The estimated error of a mean from k units has k - 1 degrees of
+freedom, and its own relative error is about 1 / sqrt(2 (k - 1)) (the spread of a chi-square
+with k - 1 dof; Student's t): 41 % on the first shard of a run with 4 batches per shard (3 dof),
+27 % with 8, 13 % at 29 dof.  A check with fewer is not met whatever its value (ratio inf: it
+cannot be judged yet), so a batch-based estimate stops a run no sooner than after 30 batches
+(with the default 4 per shard: 8 shards).
+
 Stopping on the run's own error estimate is a sequential rule: the estimate at the stopping
 shard is slightly biased (whether a shard stops the run depends a little on the estimate's own
 fluctuation), by at most a fraction of the standard error reached, i.e. a relative bias below
@@ -39,9 +48,12 @@ from schema.target import TargetSpec
 
 from .merge import Result
 
-__all__ = ["TargetCheck", "TargetStatus", "target_status"]
+__all__ = ["MIN_DOF", "TargetCheck", "TargetStatus", "target_status"]
 
 TOTAL = 2  # component index of "total" in the merged statistics
+MIN_DOF = 29
+"""Fewest degrees of freedom (independent units - 1) of a standard error a check counts on:
+its relative error ~ 1 / sqrt(2 * 29) = 13 % (see the module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -58,16 +70,18 @@ class TargetCheck:
     stderr: float
     rel_stderr: float  # stderr / |estimate|; inf for an estimate of 0, nan without events
     limit: float
+    dof: int  # degrees of freedom of stderr (photons - 1 or batches - 1)
 
     @property
     def met(self) -> bool:
-        """rel_stderr <= limit (False for nan and inf)."""
-        return bool(self.rel_stderr <= self.limit)
+        """rel_stderr <= limit on at least MIN_DOF degrees of freedom (False for nan and inf)."""
+        return bool(self.dof >= MIN_DOF and self.rel_stderr <= self.limit)
 
     @property
     def ratio(self) -> float:
-        """rel_stderr / limit: how far from the limit (<= 1 is met; nan counts as inf)."""
-        return math.inf if math.isnan(self.rel_stderr) else self.rel_stderr / self.limit
+        """rel_stderr / limit: how far from the limit (<= 1 is met; nan, and a standard error on
+        fewer than MIN_DOF degrees of freedom, count as inf)."""
+        return math.inf if math.isnan(self.rel_stderr) or self.dof < MIN_DOF else self.rel_stderr / self.limit
 
 
 @dataclass(frozen=True)
@@ -108,12 +122,13 @@ def target_status(result: Result, target: TargetSpec) -> TargetStatus:
     for est in result.estimators:
         rd, rd_se = result.mean(f"{est}/Rd"), result.stderr(f"{est}/Rd")
         radial, radial_se = result.mean(f"{est}/radial_G"), result.stderr(f"{est}/radial_G")
+        dof = result.dof(f"{est}/Rd")  # one unit count per estimator: Rd and its rings share it
         for cfg in range(cfgs.n):
             ch = cfgs.channel_of(cfg)
             where = dict(estimator=est, incidence_deg=float(cfgs.incidence_of(cfg)), channel=cfgs.channel_names[ch])
             m, se = float(rd[cfg, TOTAL]), float(rd_se[cfg, TOTAL])
             checks.append(TargetCheck("Rd", **where, r_lo_mm=None, r_hi_mm=None, estimate=m, stderr=se,
-                                      rel_stderr=_relative(m, se), limit=target.rel_stderr))  # fmt: skip
+                                      rel_stderr=_relative(m, se), limit=target.rel_stderr, dof=dof))  # fmt: skip
             if target.radial is None:
                 continue
             edges = layout.radial_mm[ch]
@@ -121,6 +136,6 @@ def target_status(result: Result, target: TargetSpec) -> TargetStatus:
             for i in inside:
                 m, se = float(radial[cfg, TOTAL, i]), float(radial_se[cfg, TOTAL, i])
                 checks.append(TargetCheck("Rd_r", **where, r_lo_mm=float(edges[i]), r_hi_mm=float(edges[i + 1]), estimate=m,
-                                          stderr=se, rel_stderr=_relative(m, se), limit=target.radial.rel_stderr))  # fmt: skip
+                                          stderr=se, rel_stderr=_relative(m, se), limit=target.radial.rel_stderr, dof=dof))  # fmt: skip
     worst = max(checks, key=lambda c: c.ratio)
     return TargetStatus(reached=all(c.met for c in checks), photons=int(result.n_sum), worst=worst, checks=tuple(checks))

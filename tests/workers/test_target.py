@@ -12,7 +12,7 @@ from schema import SimulationSpec
 from workers.merge import merge
 from workers.output import summary
 from workers.simulate import run_shards, simulate
-from workers.target import target_status
+from workers.target import MIN_DOF, target_status
 
 MEDIUM = {"sigma_a": 0.1, "sigma_s": 0.9, "g": 0.0, "eta": 1.0}
 
@@ -91,6 +91,26 @@ def test_simulate_stops_at_the_first_prefix_meeting_the_target(tallies):
     assert doc["target"]["reached"] and doc["target"]["photons"] == expected.n_sum
     assert doc["run"]["photons_per_config"] == expected.n_sum and doc["run"]["shards"] == k
     assert all(row["photons"] == expected.n_sum for row in doc["results"])
+
+
+@pytest.mark.parametrize("estimator, first_k", [("connections", 8), ("exits", 2)])
+def test_no_target_is_met_on_fewer_than_30_units(estimator, first_k):
+    """A loose target that the first shard's value meets still waits for 30 units (29 dof):
+    8 shards of 4 batches for the batch-based connection errors, 2 shards of 20 photons for
+    the per-photon exit errors; simulate stops at exactly that K."""
+    spec = _spec({"rel_stderr": 0.9}, photons=600, shards=30, estimator=estimator)
+    ts = run_shards(spec, range(first_k + 1), threads=1)
+    for k in range(1, first_k + 1):
+        status = target_status(merge(spec, ts[:k], prefix=True), spec.target)
+        dof = merge(spec, ts[:k], prefix=True).dof(f"{estimator}/Rd")
+        assert dof == (4 * k - 1 if estimator == "connections" else 20 * k - 1)
+        # Every value is within the limit from the first shard on; only the units are missing.
+        assert all(c.rel_stderr <= c.limit and c.dof == dof for c in status.checks), status.checks
+        assert status.reached is (dof >= MIN_DOF) is (k == first_k), (k, dof)
+        if not status.reached:
+            assert math.isinf(status.worst.ratio) and status.as_dict()["worst"]["dof"] == dof
+    result = simulate(spec, threads=1)
+    assert len(result.shard_info) == first_k and result.target.reached and result.target.worst.dof == result.dof(f"{estimator}/Rd")
 
 
 def test_unreachable_target_runs_every_shard():
