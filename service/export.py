@@ -13,7 +13,6 @@ wrote into OUT instead (nothing is stored; the export records their sha256 and n
 from __future__ import annotations
 
 import argparse
-import hashlib
 import io
 import json
 import os
@@ -24,6 +23,7 @@ from urllib.parse import quote
 
 from service.client import ApiClient, ApiError
 from service.datasets.exports import ensure_export, extract_export, read_export
+from service.datasets.storage import check_sha256, sha256_bytes
 from service.store.errors import DatasetError
 from workers.exports import FORMATS, MANIFEST, ExportError, ExportSource, write_export
 
@@ -71,8 +71,8 @@ def _remote(args: argparse.Namespace, name: str, version: int | None) -> tuple[s
     finally:
         client.close()
     data, etag = response.content, response.headers.get("etag", "").strip('"')
-    if hashlib.sha256(data).hexdigest() != etag:
-        raise DatasetError(f"the download of {path} does not match its ETag sha256 {etag!r}; retry it")
+    check_sha256(sha256_bytes(data), etag, f"the download of {path}", "sent in its ETag", "retry it",
+                 damage="the transfer is damaged")  # ChecksumMismatch, a DatasetError
     with zipfile.ZipFile(io.BytesIO(data)) as zf:
         manifest = json.loads(zf.read(MANIFEST))
     files = extract_export(data, manifest, args.out)

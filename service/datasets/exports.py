@@ -16,7 +16,6 @@ catalog's unique (version, format) keeps one row.
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import tempfile
@@ -24,7 +23,7 @@ import uuid
 import zipfile
 from pathlib import Path
 
-from service.datasets.storage import DatasetStorage, open_version, verified_path
+from service.datasets.storage import DatasetStorage, check_sha256, open_version, sha256_bytes, verified_path
 from service.store import DatasetVersionRecord, ExportRecord, JobStore
 from service.store.errors import ChecksumMismatch
 from workers.exports import FORMATS, MANIFEST, ExportError, ExportSource, write_export
@@ -79,7 +78,7 @@ def ensure_export(store: JobStore, storage: DatasetStorage, name: str, version: 
         names = write_export(fmt, source, tmp)
         manifest = json.loads((Path(tmp) / MANIFEST).read_text(encoding="utf-8"))
         blob = export_archive(tmp, names)
-    digest = hashlib.sha256(blob).hexdigest()
+    digest = sha256_bytes(blob)
     filename = f"{EXPORT_DIR}/{fmt}-{digest[:16]}.zip"
     _store_bytes(storage, record, filename, blob)
     export, created = store.add_export(record.name, record.version, fmt, filename=filename, sha256=digest,
@@ -109,8 +108,11 @@ def extract_export(archive: bytes, manifest: dict, out_dir: str | Path) -> list[
             if "/" in name or "\\" in name or name in ("", ".", ".."):
                 raise ChecksumMismatch(f"export archive holds {name!r}, not a plain file name")
             data = zf.read(name)
-            if name != MANIFEST and hashlib.sha256(data).hexdigest() != files.get(name, {}).get("sha256"):
-                raise ChecksumMismatch(f"export file {name} does not match its manifest's sha256")
+            if name != MANIFEST:
+                if name not in files:
+                    raise ChecksumMismatch(f"export archive holds {name}, which its manifest does not list")
+                check_sha256(sha256_bytes(data), files[name].get("sha256"), f"export file {name}",
+                             "recorded in its manifest", "make the export again", damage="the archive is corrupt")
             (out / name).write_bytes(data)
             names.append(name)
     return sorted(names)

@@ -16,11 +16,9 @@ is deleted.
 
 from __future__ import annotations
 
-import hashlib
-
 import pyarrow.fs as pafs
 
-from service.datasets.storage import DatasetStorage, verified_bytes
+from service.datasets.storage import DatasetStorage, sha256_bytes, verified_bytes
 from service.store.records import StoredFile
 
 __all__ = ["JobFiles"]
@@ -47,7 +45,7 @@ class JobFiles:
         self.fs.create_dir(path.rsplit("/", 1)[0], recursive=True)
         with self.fs.open_output_stream(path) as f:
             f.write(data)
-        return StoredFile(self._uri(name), len(data), hashlib.sha256(data).hexdigest())
+        return StoredFile(self._uri(name), len(data), sha256_bytes(data))
 
     def read(self, ref: StoredFile, what: str) -> bytes:
         """A recorded file's bytes after checking its sha256 (ChecksumMismatch otherwise)."""

@@ -20,7 +20,6 @@ Each claim of a job's merge task is one *round* (:func:`run_merge_task`):
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 
@@ -30,7 +29,7 @@ import pyarrow.parquet as pq
 from schema import parse_spec
 from service.datasets.jobfiles import JobFiles
 from service.datasets.metadata import build_metadata, metadata_bytes
-from service.datasets.storage import METADATA_FILE, DatasetStorage
+from service.datasets.storage import METADATA_FILE, DatasetStorage, sha256_bytes
 from service.store import JobStore, Lease, StoredFile, StoreError
 
 __all__ = ["run_merge_task", "IncompleteShards"]
@@ -108,7 +107,7 @@ def _write_part(files: JobFiles, result) -> dict[str, dict]:
         with files.fs.open_input_stream(f"{directory}/{name}") as f:
             data = f.read()
         out[name] = {"uri": files.part_uri(result.medium_index, name), "bytes": len(data),
-                     "sha256": hashlib.sha256(data).hexdigest()}
+                     "sha256": sha256_bytes(data)}
     return out
 
 
@@ -156,7 +155,7 @@ def _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_fil
         )
         blob = metadata_bytes(meta)
         staged.write_bytes(METADATA_FILE, blob)
-        row_meta = dict(meta, metadata_sha256=hashlib.sha256(blob).hexdigest())
+        row_meta = dict(meta, metadata_sha256=sha256_bytes(blob))
         version = store.complete_merge(lease, spec.name, row_meta, staged)
     except BaseException:
         staged.discard()

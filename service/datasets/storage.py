@@ -33,11 +33,16 @@ from service.store.records import DatasetVersionRecord
 
 __all__ = [
     "DatasetStorage", "StagedVersion", "OpenVersion", "open_version", "expected_files", "verified_path",
-    "verified_bytes", "check_sha256", "sha256_file", "METADATA_FILE",
+    "verified_bytes", "check_sha256", "sha256_bytes", "sha256_file", "METADATA_FILE",
 ]
 
 METADATA_FILE = "metadata.json"
 _CHUNK = 1 << 20
+
+
+def sha256_bytes(data: bytes) -> str:
+    """Hex sha256 of ``data`` (the digest every file of a job and a version is recorded by)."""
+    return hashlib.sha256(data).hexdigest()
 
 
 def sha256_file(fs: pafs.FileSystem, path: str) -> str:
@@ -214,13 +219,17 @@ def verified_bytes(fs: pafs.FileSystem, path: str, digest: str, what: str) -> by
             data = f.read()
     except (FileNotFoundError, OSError) as exc:
         raise ChecksumMismatch(f"{what} unreadable ({exc})") from exc
-    check_sha256(hashlib.sha256(data).hexdigest(), digest, what, "recorded", "its task must run again")
+    check_sha256(sha256_bytes(data), digest, what, "recorded", "its task must run again")
     return data
 
 
-def check_sha256(actual: str, digest: str, what: str, recorded_as: str, remedy: str) -> None:
-    """The one checksum rule: ChecksumMismatch naming the file and both digests unless equal."""
+def check_sha256(actual: str, digest: str, what: str, recorded_as: str, remedy: str, *,
+                 damage: str = "the stored copy is corrupt") -> None:
+    """The one checksum rule: ChecksumMismatch naming the file and both digests unless equal.
+
+    The message reads ``{what} has sha256 {actual}, {recorded_as} as {digest}; {damage}: {remedy}``:
+    ``recorded_as`` says where the expected digest comes from ("published", "sent in its ETag"),
+    ``damage`` what a difference means, ``remedy`` what to do about it.
+    """
     if actual != digest:
-        raise ChecksumMismatch(
-            f"{what} has sha256 {actual}, {recorded_as} as {digest}; the stored copy is corrupt: {remedy}"
-        )
+        raise ChecksumMismatch(f"{what} has sha256 {actual}, {recorded_as} as {digest}; {damage}: {remedy}")

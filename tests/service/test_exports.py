@@ -112,8 +112,15 @@ def test_refusals_and_corruption(published):
         f.write(b"not the archive")
     with pytest.raises(ChecksumMismatch):
         read_export(storage, record, export)
-    with pytest.raises(ChecksumMismatch, match="does not match its manifest"):
+    first = next(iter(export.meta["files"]))
+    with pytest.raises(ChecksumMismatch, match=rf"export file {first} has sha256 \w+, recorded in its manifest as "
+                       + export.meta["files"][first]["sha256"]):
         buf = io.BytesIO()
         with zipfile.ZipFile(buf, "w") as zf:
-            zf.writestr(next(iter(export.meta["files"])), b"other bytes")
+            zf.writestr(first, b"other bytes")
+        extract_export(buf.getvalue(), export.meta, "unused")
+    with pytest.raises(ChecksumMismatch, match="holds stray.txt, which its manifest does not list"):
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w") as zf:
+            zf.writestr("stray.txt", b"not exported")
         extract_export(buf.getvalue(), export.meta, "unused")
