@@ -33,6 +33,11 @@ TINY_SPEC = {
 }
 
 
+def job_count(store) -> int:
+    """How many jobs the store holds (a refused submission must leave it unchanged)."""
+    return len(store.list_jobs(limit=10_000))
+
+
 def tiny_spec(**changes) -> dict:
     """A deep copy of TINY_SPEC with top-level keys changed."""
     spec = copy.deepcopy(TINY_SPEC)

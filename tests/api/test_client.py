@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import json
-import socket
 import threading
 
 import pytest
@@ -14,6 +13,7 @@ from fastapi.testclient import TestClient
 import service.client as client_module
 from service.client import ApiClient, follow_job, main
 from tests.api.conftest import TINY_SPEC, TOKEN, tiny_spec
+from tests.support.net import free_port
 
 
 @pytest.fixture
@@ -144,9 +144,6 @@ def test_datasets_commands(cli, published, capsys, tmp_path):
 
 
 def test_unreachable_api_is_reported(capsys):
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    assert main(["datasets", "--api", f"http://127.0.0.1:{port}"]) == 2
+    assert main(["datasets", "--api", f"http://127.0.0.1:{free_port()}"]) == 2
     err = capsys.readouterr().err
     assert "cannot reach the API" in err and "bssrdf serve" in err

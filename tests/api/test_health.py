@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import re
-import socket
 
 from service.datasets import DatasetStorage
 from service.store import JobStore
 from tests.api.conftest import AUTH, TINY_SPEC
 from tests.support.files import stored
+from tests.support.net import free_port
 
 # name{label="value",...} value   (the value: a float, an integer, NaN or +-Inf)
 SAMPLE = re.compile(r'^([a-zA-Z_:][a-zA-Z0-9_:]*)(\{([a-zA-Z_][a-zA-Z0-9_]*="(?:[^"\\]|\\.)*",?)*\})? '
@@ -32,12 +32,6 @@ def parse_metrics(text: str) -> dict[str, float]:
         assert m.group(1) in typed, f"sample before its TYPE: {line!r}"
         samples[line.rsplit(" ", 1)[0]] = float(line.rsplit(" ", 1)[1])
     return samples
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_healthz(client):

@@ -7,11 +7,7 @@ import pytest
 from schema import parse_spec
 from service.store import JobStore
 
-from tests.api.conftest import AUTH, TINY_SPEC, tiny_spec
-
-
-def job_count(store) -> int:
-    return len(store.list_jobs(limit=10_000))
+from tests.api.conftest import AUTH, TINY_SPEC, job_count, tiny_spec
 
 
 def medium(**changes) -> dict:

@@ -17,13 +17,9 @@ import pytest
 
 from schema import parse_spec
 from schema.estimate import estimate_shard
-from tests.api.conftest import AUTH, tiny_spec
+from tests.api.conftest import AUTH, job_count, tiny_spec
 
 JSON = {**AUTH, "content-type": "application/json"}
-
-
-def job_count(store) -> int:
-    return len(store.list_jobs(limit=10_000))
 
 
 def one_problem(r, field: str) -> dict:

@@ -17,6 +17,8 @@ from urllib.parse import quote
 import pytest
 import sqlalchemy as sa
 
+from tests.support.engine import engine_settings
+
 PG_ENV = "BSSRDF_TEST_POSTGRES_URL"
 
 
@@ -58,6 +60,14 @@ def drop_pg_schema(base: str, schema: str) -> None:
     with engine.begin() as conn:
         conn.exec_driver_sql(f'DROP SCHEMA "{schema}" CASCADE')
     engine.dispose()
+
+
+@pytest.fixture(scope="module")
+def engine_env():
+    """ENGINE_ENV (tests.support.engine) in the test process for a whole module: its references,
+    computed here, run the same walk as its worker subprocesses."""
+    with engine_settings():
+        yield
 
 
 @pytest.fixture

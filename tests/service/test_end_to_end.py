@@ -18,13 +18,13 @@ import pytest
 from service.datasets import DatasetStorage, open_version
 from service.runner import start_workers, stop_workers
 from service.store import JobState, JobStore
+from tests.support.engine import ENGINE_ENV  # the reference runs with the same settings
 from tests.support.waiting import wait_for
 
-pytestmark = [pytest.mark.slow, pytest.mark.postgres]
+pytestmark = [pytest.mark.slow, pytest.mark.postgres, pytest.mark.usefixtures("engine_env")]
 
 REPO = Path(__file__).resolve().parents[2]
 TABLES = ("radial.parquet", "bins.parquet", "summary.parquet")
-ENGINE_ENV = {"BSSRDF_COMPILE": "0", "OMP_NUM_THREADS": "1"}  # same engine settings as the reference
 
 
 def tiny_spec(name: str, photons: int, shards: int):
@@ -48,18 +48,6 @@ def reference_bytes(spec, out_dir: Path) -> dict[str, bytes]:
     tallies = [run_shard(spec, i) for i in range(spec.shards)]
     write_tables(merge(spec, tallies), str(out_dir))
     return {name: (out_dir / name).read_bytes() for name in TABLES}
-
-
-@pytest.fixture(scope="module", autouse=True)
-def engine_env():
-    saved = {k: os.environ.get(k) for k in ENGINE_ENV}
-    os.environ.update(ENGINE_ENV)
-    yield
-    for k, v in saved.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
 
 
 def claimed_shard(log: Path) -> bool:

@@ -7,8 +7,6 @@ tasks skipped), and the job's files removed once the version is published (or ke
 
 from __future__ import annotations
 
-import os
-
 import pyarrow.fs as pafs
 import pytest
 
@@ -16,12 +14,12 @@ from schema import parse_spec
 from service.datasets import DatasetStorage, open_version
 from service.runner import start_workers, stop_workers
 from service.store import JobState, JobStore
+from tests.support.engine import ENGINE_ENV
 from tests.support.waiting import wait_for
 
-pytestmark = [pytest.mark.slow]
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("engine_env")]
 
 FILES = ("radial.parquet", "bins.parquet", "summary.parquet", "summary.json")
-ENGINE_ENV = {"BSSRDF_COMPILE": "0", "OMP_NUM_THREADS": "1"}
 
 
 def sweep_spec():
@@ -34,18 +32,6 @@ def sweep_spec():
         "bins": {"radial": {"count": 4, "max_mm": 3.0}, "theta_s": {"count": 2}, "cos_theta_o": {"count": 2},
                  "phi_o": {"count": 2}},
     })
-
-
-@pytest.fixture(scope="module", autouse=True)
-def engine_env():
-    saved = {k: os.environ.get(k) for k in ENGINE_ENV}
-    os.environ.update(ENGINE_ENV)
-    yield
-    for k, v in saved.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
 
 
 @pytest.fixture(scope="module")

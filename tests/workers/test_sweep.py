@@ -6,8 +6,6 @@ sweep on one thread and on three worker processes gives identical bytes."""
 
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +15,7 @@ import pytest
 
 from schema import parse_spec
 from tests.support.tables import bitwise_equal
+from tests.support.tallies import tally_digest
 from workers.merge import Fold, MergeError, merge
 from workers.output import write_tables
 from workers.shard import run_shard
@@ -36,10 +35,6 @@ def sweep(**kw):
          "absorption": "analog", "seed": 5, "bins": BINS}
     d.update(kw)
     return parse_spec(d)
-
-
-def _digest(tally: ShardTally) -> str:
-    return hashlib.sha256(dataclasses.replace(tally, info={}).to_bytes()).hexdigest()
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +87,7 @@ def test_one_thread_and_three_processes_give_identical_bytes(spec, out, tmp_path
 
 def test_run_task_is_shard_of_the_mediums_own_spec(spec):
     t = spec.task_index(5, 1)
-    assert _digest(run_task(spec, t)) == _digest(run_shard(spec.medium_spec(5), 1))
+    assert tally_digest(run_task(spec, t)) == tally_digest(run_shard(spec.medium_spec(5), 1))
 
 
 # ---- the streaming fold ---------------------------------------------------------------------

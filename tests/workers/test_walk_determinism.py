@@ -10,7 +10,6 @@ run_shard docstring excludes from the contract, so bytes are compared with info 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 import subprocess
@@ -21,6 +20,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.support.tallies import tally_digest
 from workers.merge import merge
 from workers.output import write_tables
 from workers.shard import run_shard
@@ -33,11 +33,6 @@ SPEC = dict(
     incidence_deg=[0.0, 40.0], photons=1500, shards=3, batches_per_shard=4, estimator="both",
     absorption="analog", seed=91,
 )  # fmt: skip
-
-
-def _digest(tally: ShardTally) -> str:
-    """sha256 of everything in a tally but its info (the statistics and the counts)."""
-    return hashlib.sha256(dataclasses.replace(tally, info={}).to_bytes()).hexdigest()
 
 
 def _same_counts(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> bool:
@@ -63,7 +58,7 @@ def tallies(spec):
 def test_run_shard_is_a_pure_function(spec, tallies):
     again = run_shard(spec, 1)
     assert _same_stats(again.stats, tallies[1].stats)
-    assert _digest(again) == _digest(tallies[1])
+    assert tally_digest(again) == tally_digest(tallies[1])
     assert (again.shard_index, again.n_sum) == (1, tallies[1].n_sum)
     assert _same_counts(again.counts, tallies[1].counts)
 
@@ -90,7 +85,7 @@ def test_shards_run_in_another_order_give_the_same_bytes(spec, tallies):
     """Run the shards last-first (a different history of the process)."""
     late = {i: run_shard(spec, i) for i in reversed(range(spec.shards))}
     for i, t in enumerate(tallies):
-        assert _digest(late[i]) == _digest(t), f"shard {i}"
+        assert tally_digest(late[i]) == tally_digest(t), f"shard {i}"
 
 
 def test_worker_processes_give_the_same_bytes(spec, tallies):
@@ -103,7 +98,7 @@ def test_worker_processes_give_the_same_bytes(spec, tallies):
         remote = pool.run(spec, [2, 0, 1], progress=seen.append)
     assert [t.shard_index for t in remote] == [2, 0, 1]
     for t in remote:
-        assert _digest(t) == _digest(tallies[t.shard_index]), f"shard {t.shard_index}"
+        assert tally_digest(t) == tally_digest(tallies[t.shard_index]), f"shard {t.shard_index}"
         assert t.info["cpu_s"] > 0
     n_cfg = len(spec.incidence_deg) * len(spec.channels())
     assert sum(seen) == spec.photons * n_cfg
@@ -127,7 +122,7 @@ def test_thread_count_does_not_change_the_bits(spec, tallies, threads):
         t = run_shard(spec, 0)
     finally:
         torch.set_num_threads(previous)
-    assert _digest(t) == _digest(tallies[0]), f"torch threads {threads} vs {previous}"
+    assert tally_digest(t) == tally_digest(tallies[0]), f"torch threads {threads} vs {previous}"
 
 
 def test_shard_count_is_part_of_the_spec(walk_spec, spec, tallies, walk_stats):
