@@ -204,9 +204,13 @@ class QueueMixin(StoreBase):
                 )
             ).scalar_one() == n
         if ready:
+            # The merge task is the job's one task without a shard index: (job_id, shard_index IS
+            # NULL) finds it through ix_tasks_job_shard, where job_id and kind alone visited every
+            # task of the job (O(N) per wake-up, O(N^2 / fold_batch) per job).
             conn.execute(
                 sa.update(tasks)
-                .where(tasks.c.job_id == job_id, tasks.c.kind == TaskKind.MERGE, tasks.c.state == TaskState.WAITING)
+                .where(tasks.c.job_id == job_id, tasks.c.shard_index.is_(None), tasks.c.kind == TaskKind.MERGE,
+                       tasks.c.state == TaskState.WAITING)
                 .values(state=TaskState.QUEUED)
             )
 
