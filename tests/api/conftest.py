@@ -10,8 +10,10 @@ import copy
 import pytest
 from fastapi.testclient import TestClient
 
+import service.client as client_module
 from service.api import create_app
 from service.api.deps import get_storage, get_store
+from service.client import ApiClient, main
 from service.datasets import DatasetStorage
 from service.settings import Settings
 from service.store import JobStore
@@ -31,6 +33,30 @@ TINY_SPEC = {
     "estimator": "exits",
     "bins": {"radial": {"count": 4, "max_mm": 4.0}, "cos_theta_o": {"count": 1}, "phi_o": {"count": 1}},
 }
+
+
+@pytest.fixture
+def cli(monkeypatch, make_client):
+    """``cli(store, storage, capsys)`` -> run(*argv) -> (exit status, stdout, stderr): the client
+    commands (``bssrdf submit``, ``status``, ``datasets``) in-process against the app."""
+
+    def bind(store, storage, capsys):
+        app = make_client(store, storage).app
+
+        def fresh(args):  # one HTTP client per command, like the real thing
+            return ApiClient("http://testserver", args.token, http=TestClient(app, base_url="http://testserver"))
+
+        monkeypatch.setattr(client_module, "_client", fresh)
+
+        def run(*argv: str) -> tuple[int, str, str]:
+            capsys.readouterr()
+            status = main(list(argv))
+            out, err = capsys.readouterr()
+            return status, out, err
+
+        return run
+
+    return bind
 
 
 def job_count(store) -> int:

@@ -10,33 +10,9 @@ import threading
 import pytest
 from fastapi.testclient import TestClient
 
-import service.client as client_module
 from service.client import ApiClient, follow_job, main
 from tests.api.conftest import TINY_SPEC, TOKEN, tiny_spec
 from tests.support.net import free_port
-
-
-@pytest.fixture
-def cli(monkeypatch, make_client):
-    """``cli(store, storage)`` -> run(argv) -> (exit status, stdout, stderr) against the app."""
-
-    def bind(store, storage, capsys):
-        app = make_client(store, storage).app
-
-        def fresh(args):  # one HTTP client per command, like the real thing
-            return ApiClient("http://testserver", args.token, http=TestClient(app, base_url="http://testserver"))
-
-        monkeypatch.setattr(client_module, "_client", fresh)
-
-        def run(*argv: str) -> tuple[int, str, str]:
-            capsys.readouterr()
-            status = main(list(argv))
-            out, err = capsys.readouterr()
-            return status, out, err
-
-        return run
-
-    return bind
 
 
 @pytest.fixture
