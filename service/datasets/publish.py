@@ -29,7 +29,8 @@ import pyarrow.parquet as pq
 from schema import parse_spec
 from service.datasets.jobfiles import JobFiles
 from service.datasets.metadata import build_metadata, metadata_bytes
-from service.datasets.storage import METADATA_FILE, DatasetStorage, sha256_bytes
+from service.datasets.storage import METADATA_FILE, DatasetStorage, StagedVersion, sha256_bytes
+from service.faults import pause_point
 from service.store import JobStore, Lease, StoredFile, StoreError
 
 __all__ = ["run_merge_task", "IncompleteShards"]
@@ -61,6 +62,7 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
         raise IncompleteShards(f"job {lease.job_id}: the fold file is at task {fold.next_task}, the job row at {pos.folded}")
     skipped: list[range] = []
     last = None
+    folded_now = 0  # shards folded by this round
     while not fold.done:
         task = fold.next_task
         stored = store.shard_result(lease.job_id, task)
@@ -69,6 +71,8 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
         data = files.read(stored, f"task {task}") if isinstance(stored, StoredFile) else stored
         result = fold.add(task, ShardTally.from_bytes(data))
         del data
+        folded_now += 1
+        pause_point(f"fold:{folded_now}")  # tests only (service.faults)
         if result is None:
             continue
         if len(fold.skipped):
@@ -156,10 +160,25 @@ def _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_fil
         blob = metadata_bytes(meta)
         staged.write_bytes(METADATA_FILE, blob)
         row_meta = dict(meta, metadata_sha256=sha256_bytes(blob))
-        version = store.complete_merge(lease, spec.name, row_meta, staged)
+        version = store.complete_merge(lease, spec.name, row_meta, _Publisher(staged))
     except BaseException:
         staged.discard()
         raise
     if not keep_files:
         files.discard()
     return version
+
+
+class _Publisher:
+    """The staged version as ``complete_merge`` publishes it, with the test-only fault point
+    ``publish`` (:mod:`service.faults`) once its files are in place, before the commit."""
+
+    def __init__(self, staged: StagedVersion) -> None:
+        self.staged = staged
+
+    def uri_for(self, version: int) -> str:
+        return self.staged.uri_for(version)
+
+    def publish(self, version: int) -> None:
+        self.staged.publish(version)
+        pause_point("publish")

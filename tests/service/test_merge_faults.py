@@ -1,29 +1,34 @@
 """The merge under load and faults (issue 10): a 256-shard job merges in the memory of a 16-shard
 one (the fold holds one shard and one accumulator), and a worker SIGKILLed in the middle of a
-fold round leaves the last committed fold, from which another worker publishes the same bytes as
-an uninterrupted merge."""
+fold round, or inside the publish (tables moved into place, catalog row not committed), leaves
+the last committed state, from which another worker publishes the same bytes as an uninterrupted
+merge. The kills are placed, not raced: ``BSSRDF_TEST_PAUSE_AT`` (service.faults) makes the
+merging worker stop itself at the point, and the test kills it there."""
 
 from __future__ import annotations
 
 import os
 import signal
 
+import pyarrow.fs as pafs
 import pytest
 
 from service.bench_merge import bench_spec, measure, stage_job
 from service.datasets import DatasetStorage, open_version, run_merge_task
+from service.faults import PAUSE_ENV
 from service.runner import start_workers, stop_workers
 from service.store import JobState, JobStore, TaskKind
+from tests.support.engine import ENGINE_ENV
 from tests.support.waiting import wait_for
 
 pytestmark = [pytest.mark.slow]
 
 FILES = ("radial.parquet", "bins.parquet", "summary.parquet", "summary.json")
-ENV = {"BSSRDF_COMPILE": "0", "OMP_NUM_THREADS": "1"}
+SHARDS = 16
 
 
 def test_merge_memory_does_not_grow_with_the_shard_count(tmp_path, monkeypatch):
-    for k, v in ENV.items():
+    for k, v in ENGINE_ENV.items():
         monkeypatch.setenv(k, v)
     small = measure(16, tmp_path / "16", radial=64)
     large = measure(256, tmp_path / "256", radial=64)
@@ -44,37 +49,100 @@ def _one_round(store, storage) -> int | None:
     return run_merge_task(store, storage, lease)
 
 
-def test_sigkill_during_a_fold_round(tmp_path, monkeypatch):
-    for k, v in ENV.items():
-        monkeypatch.setenv(k, v)
-    spec = bench_spec(64, radial=128)
-    # Reference: the same shards merged without interruption.
-    ref_db, ref_storage = f"sqlite:///{tmp_path / 'ref.sqlite'}", str(tmp_path / "ref")
-    ref_job = stage_job(ref_db, ref_storage, spec)
-    ref_store = JobStore(ref_db)
-    assert _one_round(ref_store, DatasetStorage(ref_storage)) is not None
-    expected = _published(ref_store, DatasetStorage(ref_storage), ref_job)
+@pytest.fixture(scope="module")
+def spec():
+    return bench_spec(SHARDS, radial=32, cos=4, phi=4)
 
-    db, storage_uri = f"sqlite:///{tmp_path / 'jobs.sqlite'}", str(tmp_path / "data")
-    job_id = stage_job(db, storage_uri, spec, shards=range(31))
-    stage_job(db, storage_uri, spec, shards=range(1), job_id=job_id, fold_batch=8)  # this commit queues the merge
-    store, storage = JobStore(db, fold_batch=8), DatasetStorage(storage_uri)
-    assert _one_round(store, storage) is None  # folds tasks 0..31 and commits that fold
-    assert store.fold_position(job_id).folded == 32
-    stage_job(db, storage_uri, spec, shards=range(32), job_id=job_id)
-    logs = tmp_path / "logs"
-    victim = start_workers(1, db, storage_uri, logs, lease_seconds=3.0, extra_env=ENV)
-    log = logs / "worker-0.log"
-    wait_for(lambda: log.exists() and '"kind": "merge"' in log.read_text(), 120, "the worker to claim the merge",
-             poll=0.02)
-    os.kill(victim[0].pid, signal.SIGKILL)  # in the middle of folding tasks 32..63
-    victim[0].wait()
-    assert store.get_job(job_id).state == JobState.MERGING and store.fold_position(job_id).folded == 32
-    rescuer = start_workers(1, db, storage_uri, tmp_path / "logs2", lease_seconds=3.0, extra_env=ENV)
+
+@pytest.fixture(scope="module")
+def expected(spec, tmp_path_factory):
+    """The published files of the same shards merged without interruption, in this process."""
+    with pytest.MonkeyPatch.context() as mp:
+        for k, v in ENGINE_ENV.items():
+            mp.setenv(k, v)
+        root = tmp_path_factory.mktemp("reference")
+        db, storage_uri = f"sqlite:///{root / 'ref.sqlite'}", str(root / "data")
+        job_id = stage_job(db, storage_uri, spec)
+        store = JobStore(db)
+        assert _one_round(store, DatasetStorage(storage_uri)) is not None
+        files = _published(store, DatasetStorage(storage_uri), job_id)
+        store.dispose()
+    return files
+
+
+def _paused_worker(db: str, storage_uri: str, logs, point: str):
+    """A worker process that stops itself (SIGSTOP) at ``point`` of its merge round; returns it
+    stopped there (AssertionError if it exits or does not get there)."""
+    proc = start_workers(1, db, storage_uri, logs, lease_seconds=3.0, extra_env={**ENGINE_ENV, PAUSE_ENV: point})[0]
+
+    def stopped() -> bool:
+        pid, status = os.waitpid(proc.pid, os.WUNTRACED | os.WNOHANG)
+        if pid == 0:
+            return False
+        assert os.WIFSTOPPED(status), f"the worker exited (status {status}) before {point}; see {logs}"
+        return True
+
     try:
-        wait_for(lambda: store.get_job(job_id).state in (JobState.SUCCEEDED, JobState.FAILED), 180, "the merge")
+        wait_for(stopped, 120, f"the worker to pause at {point}", poll=0.02)
+    except BaseException:
+        proc.kill()
+        raise
+    return proc
+
+
+def _kill(proc) -> None:
+    os.kill(proc.pid, signal.SIGKILL)  # a stopped process dies of SIGKILL without running again
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+
+
+def _rescue(store, storage, db: str, storage_uri: str, logs, job_id: str) -> None:
+    """Another worker finishes the job once the killed one's lease expires."""
+    rescuer = start_workers(1, db, storage_uri, logs, lease_seconds=3.0, extra_env=ENGINE_ENV)
+    try:
+        wait_for(lambda: store.get_job(job_id).state in (JobState.SUCCEEDED, JobState.FAILED), 120, "the merge")
     finally:
         stop_workers(rescuer)
-    assert _published(store, storage, job_id) == expected
     assert store.metrics()["leases_expired"] >= 1
+
+
+def test_sigkill_during_a_fold_round(spec, expected, tmp_path):
+    db, storage_uri = f"sqlite:///{tmp_path / 'jobs.sqlite'}", str(tmp_path / "data")
+    job_id = stage_job(db, storage_uri, spec, shards=range(7))
+    stage_job(db, storage_uri, spec, shards=range(1), job_id=job_id, fold_batch=4)  # this commit queues the merge
+    store, storage = JobStore(db, fold_batch=4), DatasetStorage(storage_uri)
+    assert _one_round(store, storage) is None  # folds tasks 0..7 and commits that fold
+    committed = store.fold_position(job_id)
+    assert committed.folded == 8
+    stage_job(db, storage_uri, spec, shards=range(SHARDS - 8), job_id=job_id)
+
+    victim = _paused_worker(db, storage_uri, tmp_path / "logs", "fold:3")  # tasks 8, 9, 10 folded in memory
+    _kill(victim)
+    assert store.get_job(job_id).state == JobState.MERGING
+    now = store.fold_position(job_id)
+    assert (now.folded, now.fold) == (committed.folded, committed.fold)  # nothing of the killed round committed
+
+    _rescue(store, storage, db, storage_uri, tmp_path / "logs2", job_id)
+    assert _published(store, storage, job_id) == expected
     assert not os.path.exists(storage.job_path(job_id))  # the killed round's files went with the rest
+    store.dispose()
+
+
+def test_sigkill_inside_the_publish(spec, expected, tmp_path):
+    db, storage_uri = f"sqlite:///{tmp_path / 'jobs.sqlite'}", str(tmp_path / "data")
+    job_id = stage_job(db, storage_uri, spec)
+    store, storage = JobStore(db), DatasetStorage(storage_uri)
+
+    victim = _paused_worker(db, storage_uri, tmp_path / "logs", "publish")
+    orphan = storage.version_path(spec.name, 1)
+    assert storage.fs.get_file_info(orphan).type == pafs.FileType.Directory  # moved into place, not committed
+    _kill(victim)
+    assert store.get_job(job_id).state == JobState.MERGING and store.list_versions(spec.name) == []
+
+    _rescue(store, storage, db, storage_uri, tmp_path / "logs2", job_id)
+    assert [v.version for v in store.list_versions(spec.name)] == [1]  # the orphan's number, replaced
+    assert _published(store, storage, job_id) == expected
+    assert not os.path.exists(storage.job_path(job_id))
+    leftovers = storage.fs.get_file_info(pafs.FileSelector(f"{storage.root}/{spec.name}"))
+    assert [f.base_name for f in leftovers] == ["v1"]  # no staging directory left behind
+    store.dispose()
