@@ -6,6 +6,8 @@ a worker process that reaches it sends itself SIGSTOP, so that a test waiting fo
 
 - ``fold:K``: the round has folded K shards (read, checked and added to the accumulator in
   memory; nothing of this round committed yet);
+- ``staged``: the version's tables and metadata.json are written in its staging directory,
+  ``complete_merge`` not yet called;
 - ``publish``: the version's tables and metadata.json are written and moved to ``NAME/vN``,
   inside ``complete_merge``'s transaction, before it commits (the catalog row not yet visible).
 

@@ -132,7 +132,9 @@ def _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_fil
 
     job = store.get_job(lease.job_id)
     t_fold = time.perf_counter()
-    staged = storage.stage(spec.name)
+    # In the job's directory: a round killed before the publish leaves its staging directory
+    # there, and it goes with the job's files once another round publishes.
+    staged = storage.stage(spec.name, within=files.path)
     try:
         if spec.is_sweep:
             names = write_sweep_tables(spec, fold.media, _read_parts(files, parts, spec.n_media), staged.path, storage.fs)
@@ -160,6 +162,7 @@ def _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_fil
         blob = metadata_bytes(meta)
         staged.write_bytes(METADATA_FILE, blob)
         row_meta = dict(meta, metadata_sha256=sha256_bytes(blob))
+        pause_point("staged")  # tests only (service.faults)
         version = store.complete_merge(lease, spec.name, row_meta, _Publisher(staged))
     except BaseException:
         staged.discard()

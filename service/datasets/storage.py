@@ -6,6 +6,8 @@ Layout under the storage root::
     NAME/v2/...
     NAME/.staging-<uuid>/      files being written (never listed by the catalog)
     .jobs/<job id>/            files a job keeps while it runs (removed when the job is deleted)
+    .jobs/<job id>/.staging-<uuid>/   a job's version being written (removed with the job's files,
+                                      so that a merge killed while writing leaves nothing behind)
 
 A version exists when its catalog row exists (``dataset_versions``, written in the same DB
 transaction that ends the job). The staged directory is moved to ``NAME/vN`` inside that
@@ -77,9 +79,11 @@ class DatasetStorage:
         """Directory of a version on ``self.fs``."""
         return f"{self.root}/{_check_name(name)}/v{int(version)}"
 
-    def stage(self, name: str) -> "StagedVersion":
-        """A fresh staging directory for the next version of ``name``."""
-        path = f"{self.root}/{_check_name(name)}/.staging-{uuid.uuid4().hex}"
+    def stage(self, name: str, within: str | None = None) -> "StagedVersion":
+        """A fresh staging directory for the next version of ``name``: under ``NAME/``, or under
+        ``within`` (a job's directory, which goes once its version is published or it is deleted)."""
+        parent = within if within is not None else f"{self.root}/{_check_name(name)}"
+        path = f"{parent}/.staging-{uuid.uuid4().hex}"
         self.fs.create_dir(path, recursive=True)
         return StagedVersion(self, name, path)
 

@@ -128,20 +128,23 @@ def test_sigkill_during_a_fold_round(spec, expected, tmp_path):
     store.dispose()
 
 
-def test_sigkill_inside_the_publish(spec, expected, tmp_path):
+@pytest.mark.parametrize("point", ["staged", "publish"])
+def test_sigkill_while_publishing(spec, expected, tmp_path, point):
+    """``staged``: tables written, complete_merge not called; ``publish``: inside complete_merge,
+    the files moved to NAME/v1, the catalog row not committed."""
     db, storage_uri = f"sqlite:///{tmp_path / 'jobs.sqlite'}", str(tmp_path / "data")
     job_id = stage_job(db, storage_uri, spec)
     store, storage = JobStore(db), DatasetStorage(storage_uri)
 
-    victim = _paused_worker(db, storage_uri, tmp_path / "logs", "publish")
-    orphan = storage.version_path(spec.name, 1)
-    assert storage.fs.get_file_info(orphan).type == pafs.FileType.Directory  # moved into place, not committed
+    victim = _paused_worker(db, storage_uri, tmp_path / "logs", point)
+    orphan = storage.fs.get_file_info(storage.version_path(spec.name, 1)).type
+    assert orphan == (pafs.FileType.Directory if point == "publish" else pafs.FileType.NotFound)
     _kill(victim)
     assert store.get_job(job_id).state == JobState.MERGING and store.list_versions(spec.name) == []
 
     _rescue(store, storage, db, storage_uri, tmp_path / "logs2", job_id)
     assert [v.version for v in store.list_versions(spec.name)] == [1]  # the orphan's number, replaced
-    assert _published(store, storage, job_id) == expected
+    assert _published(store, storage, job_id) == expected  # open_version checked every sha256, metadata.json's too
     assert not os.path.exists(storage.job_path(job_id))
     leftovers = storage.fs.get_file_info(pafs.FileSelector(f"{storage.root}/{spec.name}"))
     assert [f.base_name for f in leftovers] == ["v1"]  # no staging directory left behind
