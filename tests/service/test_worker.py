@@ -14,9 +14,11 @@ import pytest
 
 from service.datasets import DatasetStorage
 from service.store import JobState, JobStore
-from tests.service.test_end_to_end import ENGINE_ENV, REPO, claimed_shard, engine_env, tiny_spec, wait_for  # noqa: F401
+from tests.service.test_end_to_end import REPO, claimed_shard, tiny_spec
+from tests.support.engine import ENGINE_ENV
+from tests.support.waiting import wait_for
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("engine_env")]
 
 
 @pytest.fixture
