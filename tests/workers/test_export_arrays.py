@@ -88,36 +88,63 @@ def test_csv_round_trip(source, tmp_path):
     assert "[1/mm^2]" in (tmp_path / "columns.csv").read_text()
 
 
+def _exr_channels(view: str) -> set[str]:
+    """The exact EXR channel names of a part of ``view`` (bins: 6 r x 3 theta_s x 2 cos_theta_o x 2 phi_o)."""
+    a, n_a = ("c", 2) if view == "r_theta_s" else ("t", 3)
+    return {f"{q}.{a}{j}.p{m}" for q in ("S", "S_stderr") for j in range(n_a) for m in range(2)}
+
+
 def test_exr_read_back_with_openexr_equals_parquet(source, tmp_path):
+    """Every part holds exactly its channels and header attributes, and every pixel of S and of
+    S_stderr equals its Parquet bin (each bin seen once per view, NaN standard errors included)."""
     names = write_export("exr", source, tmp_path)
     _check_manifest(tmp_path, names, source, "exr")
     exr = sorted(n for n in names if n.endswith(".exr"))
     assert exr == [f"arrays-{e}-m0-inc{i}.exr" for e in ("connections", "exits") for i in ("0", "45")]
     bins = source.tables["bins"]
+    albedo, g = {"R": 0.9, "G": 0.95}, {"R": 0.0, "G": 0.7}
     for name in exr:
         est, inc = name.split("-")[1], float(name.split("inc")[1][:-4])
         with OpenEXR.File(str(tmp_path / name), separate_channels=True) as f:
             parts = {p.name(): p for p in f.parts}
-            assert len(parts) == 2 * 3 * 2  # channel x component x view
+            assert set(parts) == {f"{ch}.{comp}.{view}" for ch in ("R", "G") for comp in ("single", "multiple", "total")
+                                  for view in ("r_theta_s", "r_cos_theta_o")}
             for part_name, part in parts.items():
                 ch, comp, view = part_name.split(".")
-                key = json.loads(part.header["bssrdf.key"])
-                assert (key["estimator"], key["incidence_deg"], key["channel"], key["component"]) == (est, inc, ch, comp)
-                assert json.loads(part.header["bssrdf.provenance"])["spec_hash"] == source.spec_hash
-                assert parse_spec(part.header["bssrdf.spec"]).spec_hash() == source.spec_hash
+                assert set(part.channels) == _exr_channels(view), part_name
+                header = part.header
+                assert {"bssrdf.provenance", "bssrdf.spec", "bssrdf.key", "bssrdf.units", "bssrdf.axes",
+                        "bssrdf.edges"} <= set(header), part_name
+                key = json.loads(header["bssrdf.key"])
+                assert key == {"estimator": est, "medium": 0, "incidence_deg": inc, "channel": ch, "component": comp,
+                               "albedo": pytest.approx(albedo[ch]), "g": g[ch], "eta": 1.4}
+                assert json.loads(header["bssrdf.provenance"]) == source.provenance("exr")
+                assert parse_spec(header["bssrdf.spec"]).spec_hash() == source.spec_hash
+                assert header["bssrdf.spec"] == source.spec.canonical_json()
+                assert header["bssrdf.units"].startswith("S and S_stderr: 1/(mm^2 sr), per unit incident power")
+                assert header["bssrdf.axes"].startswith("x: radial bin, y: " + ("theta_s" if view == "r_theta_s" else "cos_theta_o"))
                 rows = bins.filter(pc.and_(pc.and_(pc.equal(bins["estimator"], est), pc.equal(bins["incidence_deg"], inc)),
                                            pc.and_(pc.equal(bins["channel"], ch), pc.equal(bins["component"], comp))))
                 for col in ("S", "S_stderr"):
                     cube = rows.column(col).to_numpy().reshape(6, 3, 2, 2)  # r, theta_s, cos, phi
+                    seen = np.zeros(cube.shape, dtype=int)
                     for chan, pix in part.channels.items():
-                        if not chan.startswith(col + "."):
+                        if chan.split(".")[0] != col:
                             continue
                         a, b = (int(x[1:]) for x in chan.split(".")[1:])
                         want = cube[:, :, a, b].T if view == "r_theta_s" else cube[:, a, :, b].T
                         assert pix.pixels.dtype == np.float32
                         np.testing.assert_array_equal(pix.pixels, want.astype(np.float32), err_msg=f"{name} {part_name} {chan}")
-                edges = json.loads(part.header["bssrdf.edges"])
+                        if view == "r_theta_s":
+                            seen[:, :, a, b] += 1
+                        else:
+                            seen[:, a, :, b] += 1
+                    assert np.all(seen == 1), (name, part_name, col)  # every bin is one pixel of this view
+                edges = json.loads(header["bssrdf.edges"])
+                np.testing.assert_array_equal(edges["r_lo_mm"], np.linspace(0, 3, 7)[:-1])
                 np.testing.assert_array_equal(edges["r_hi_mm"], np.linspace(0, 3, 7)[1:])
+                np.testing.assert_allclose(edges["cos_theta_o_lo"], [0.0, 0.5])
+    assert np.isnan(source.tables["bins"].column("S_stderr").to_numpy()).any()  # the NaN bins were compared
 
 
 def test_grid_of_summary_has_every_key(source):
