@@ -1,13 +1,16 @@
 """The plots export (workers.exports.plots): every figure as a valid PNG and SVG, the same bytes
 from the same tables, named by estimator, (g, eta) and incidence; an albedo map where a dataset
-has several albedos at one (g, eta)."""
+has several albedos at one (g, eta); the Rd figures draw the measured points and both models per
+channel, with the models' values."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import xml.etree.ElementTree as ET
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
@@ -19,7 +22,9 @@ pytest.importorskip("matplotlib", reason="the plots export needs the plot extra 
 
 from PIL import Image  # noqa: E402  (matplotlib's own dependency)
 
+from workers.diffusion import dipole_rd, pbd_multiple, pbd_rd, pbd_single  # noqa: E402
 from workers.exports import MANIFEST, write_export  # noqa: E402
+from workers.exports.plots import figures  # noqa: E402
 
 
 def _only(source, **values):
@@ -69,3 +74,56 @@ def test_albedo_map_figure_when_albedos_share_g_and_eta(arrays_source, tmp_path)
     assert set(names) == {f"{stem}.{ext}" for stem in ("albedo-map-exits-g+0.0000-eta1.4000",
                                                        "rd-exits-g+0.0000-eta1.4000-inc0", "s-exits-g+0.0000-eta1.4000-inc0")
                           for ext in ("png", "svg")} | {MANIFEST}
+
+
+CHANNELS = {"R": dict(sigma_a=0.2, sigma_s=1.8, g=0.0), "G": dict(sigma_a=0.05, sigma_s=0.95, g=0.7)}  # ARRAYS_SPEC
+ETA = 1.4
+R_SPEC = ((ETA - 1) / (ETA + 1)) ** 2  # Fresnel at normal incidence, independent of workers.optics
+
+
+def _gids(svg_path) -> set[str]:
+    return {el.get("id") for el in ET.parse(svg_path).getroot().iter() if el.get("id")}
+
+
+def _line(fig, gid):
+    (line,) = fig.findobj(match=lambda a: a.get_gid() == gid)  # exactly one artist per curve
+    return np.asarray(line.get_xdata(), dtype=float), np.asarray(line.get_ydata(), dtype=float)
+
+
+def test_rd_figures_draw_the_data_and_both_models_per_channel(arrays_source, tmp_path):
+    """At normal incidence every channel's Rd panel holds its measured points and photon beam
+    diffusion (every component), and the classical dipole (multiple, total): present in the SVG
+    under their ids, and the models' curves equal (1 - R_spec) times workers.diffusion's
+    profiles for the channel's own coefficients at the plotted radii, from the first to the last
+    bin centre (single scattering of channel R resolves one bin only at 400 photons: its models
+    are drawn all the same)."""
+    source = _only(arrays_source, estimator="exits", incidence_deg=0.0)
+    names = write_export("plots", source, tmp_path)
+    figs = dict(figures(source))
+    rows = source.tables["radial"].filter(pc.equal(source.tables["radial"]["estimator"], "exits")).to_pylist()
+    for ch, g in (("R", "+0.0000"), ("G", "+0.7000")):
+        stem = f"rd-exits-g{g}-eta1.4000-inc0"
+        assert f"{stem}.svg" in names
+        ids = _gids(tmp_path / f"{stem}.svg")
+        p = CHANNELS[ch]
+        for comp in ("single", "multiple", "total"):
+            curves = ("measured", "pbd") + (("dipole",) if comp != "single" else ())
+            for curve in curves:
+                assert f"rd-{curve}-{comp}-m0-{ch}" in ids, (stem, curve, comp)
+            assert f"rd-dipole-single-m0-{ch}" not in ids  # the dipole has no single-scattering part
+            mine = [r for r in rows if r["channel"] == ch and r["component"] == comp]
+            centres = np.array([math.sqrt(r["r_lo_mm"] * r["r_hi_mm"]) if r["r_lo_mm"] > 0 else r["r_hi_mm"] / 2
+                                for r in mine])
+            keep = np.array([math.isfinite(r["Rd_r_stderr"]) and r["Rd_r"] > 0 for r in mine])
+            x, y = _line(figs[stem], f"rd-measured-{comp}-m0-{ch}")
+            np.testing.assert_allclose(x, centres[keep], rtol=1e-12)
+            np.testing.assert_allclose(y, [r["Rd_r"] for r, k in zip(mine, keep) if k], rtol=1e-12)
+            model = {"single": pbd_single, "multiple": pbd_multiple, "total": pbd_rd}[comp]
+            x, y = _line(figs[stem], f"rd-pbd-{comp}-m0-{ch}")
+            assert x.min() == pytest.approx(centres.min(), rel=1e-12) and x.max() == pytest.approx(centres.max(), rel=1e-12)
+            np.testing.assert_allclose(y, (1 - R_SPEC) * model(x, p["sigma_a"], p["sigma_s"], p["g"], ETA), rtol=1e-12)
+            assert np.all(y > 0)
+            if comp != "single":
+                x, y = _line(figs[stem], f"rd-dipole-{comp}-m0-{ch}")
+                want = (1 - R_SPEC) * dipole_rd(x, p["sigma_a"], p["sigma_s"] * (1 - p["g"]), ETA)
+                np.testing.assert_allclose(y, want, rtol=1e-12)

@@ -5,8 +5,9 @@
   with standard-error bars (bins without events are left out) and, at normal incidence, the
   models beside it: photon beam diffusion (pbrt's ``BeamDiffusionSS`` / ``MS``, the single,
   multiple and total panels) and the classical dipole (multiple and total), both per unit
-  incident power (times 1 - R_spec) for the channel's sigma_a, sigma_s, g, eta. Points are at
-  the bins' centres (geometric for r > 0, half the first edge for the first bin).
+  incident power (times 1 - R_spec) for the channel's sigma_a, sigma_s, g, eta, from the first
+  to the last bin centre (also where few bins had events). Points are at the bins' centres
+  (geometric for r > 0, half the first edge for the first bin).
 * ``s-EST-gG-etaE-incI``: S over the outgoing hemisphere (projected: radius sin theta_o, angle
   phi_o from the outward radial direction) at four radii, for the total component, one row per
   series; at oblique incidence for the theta_s bin holding +x (the incidence plane, forward);
@@ -15,7 +16,10 @@
   the albedo map of :mod:`.albedo_map` with the dipole's and Christensen-Burley's relations,
   and their error per albedo against the measurement's error bars.
 
-SVGs carry no date and fixed element ids, so the same tables give the same files.
+SVGs carry no date and fixed element ids, so the same tables give the same files. Each curve of
+an Rd figure has a gid (:func:`line_gid`, the id of its SVG group): the measured points, their
+error bars (``-stderr``), and the models, so a reader (or a test) can find what was drawn;
+:func:`figures` gives the Figure objects themselves.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from .albedo_map import AlbedoMap, albedo_maps
 from .grid import table_grid
 from .source import ExportError, ExportSource
 
-__all__ = ["write_plots", "MAX_SERIES"]
+__all__ = ["write_plots", "figures", "line_gid", "MAX_SERIES"]
 
 MAX_SERIES = 6
 """Most series drawn in one panel (a sweep's albedos are thinned to this many)."""
@@ -75,6 +79,13 @@ def _label(source: ExportSource, grid, m: int, c: int) -> str:
     return f"{grid.keys['channel'][c]} (albedo {grid.albedo[m, c]:.4g})"
 
 
+def line_gid(curve: str, comp: str, grid, m: int, c: int) -> str:
+    """The gid (SVG id) of a curve of an Rd figure: ``rd-CURVE-COMP-mM-CHANNEL``, curve one of
+    ``measured`` (the data points with their error bars), ``pbd`` (photon beam diffusion) and
+    ``dipole`` (the classical dipole), M the medium, CHANNEL the channel name."""
+    return f"rd-{curve}-{comp}-m{int(grid.keys['medium'][m])}-{grid.keys['channel'][c]}"
+
+
 def _rd_figure(source, radial, summary, e, i, series, title) -> Figure:
     fig = Figure(figsize=(11, 3.8), layout="constrained")
     axes = fig.subplots(1, 3, sharey=True)
@@ -89,11 +100,15 @@ def _rd_figure(source, radial, summary, e, i, series, title) -> Figure:
             ok = np.isfinite(se) & (rd > 0)
             r = _centres(lo, hi)
             low = np.minimum(se, rd * (1 - 1e-3))  # a log axis cannot show the bar below 0
-            ax.errorbar(r[ok], rd[ok], yerr=[low[ok], se[ok]], fmt="o", ms=2.5, lw=0.8, color=colour,
-                        label=_label(source, radial, m, c))
+            points = ax.errorbar(r[ok], rd[ok], yerr=[low[ok], se[ok]], fmt="o", ms=2.5, lw=0.8, color=colour,
+                                 label=_label(source, radial, m, c))
+            gid = line_gid("measured", comp, radial, m, c)
+            points.lines[0].set_gid(gid)  # the points; their bars get their own id (SVG ids are unique)
+            for bars in points.lines[2]:
+                bars.set_gid(f"{gid}-stderr")
             shown.append(rd[ok])
-            if inc == 0.0 and np.count_nonzero(ok & (r > 0)) >= 2:  # models over the measured range only
-                _models(ax, source, radial, summary, (e, m, i, c), comp, r[ok & (r > 0)], colour)
+            if inc == 0.0:  # models over the bins' radii, drawn even where few bins had events
+                _models(ax, source, radial, summary, (e, m, i, c), comp, r, colour)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("r [mm]" if not source.spec.is_sweep else "r [mm] = r sigma_t")
@@ -124,9 +139,10 @@ def _models(ax, source, radial, summary, index, comp, r, colour) -> None:
     xs = np.geomspace(r.min(), r.max(), 160)
     sa, ss, g, eta = ch.sigma_a, ch.sigma_s, ch.g, float(radial.eta[m])
     pbd = {"single": pbd_single, "multiple": pbd_multiple, "total": pbd_rd}[comp](xs, sa, ss, g, eta)
-    ax.plot(xs, entered * pbd, "--", color=colour, lw=0.9)
+    ax.plot(xs, entered * pbd, "--", color=colour, lw=0.9, gid=line_gid("pbd", comp, radial, m, c))
     if comp != "single" and ch.sigma_s_reduced > 0:
-        ax.plot(xs, entered * dipole_rd(xs, sa, ch.sigma_s_reduced, eta), ":", color=colour, lw=1.1)
+        ax.plot(xs, entered * dipole_rd(xs, sa, ch.sigma_s_reduced, eta), ":", color=colour, lw=1.1,
+                gid=line_gid("dipole", comp, radial, m, c))
 
 
 def _s_figure(source, bins, e, i, series, title) -> Figure:
@@ -160,27 +176,33 @@ def _s_figure(source, bins, e, i, series, title) -> Figure:
     return fig
 
 
-def write_plots(source: ExportSource, out_dir: str | Path) -> list[str]:
-    """Write the figures (PNG and SVG) into ``out_dir``; the file names."""
-    out = Path(out_dir)
+def figures(source: ExportSource):
+    """Yield (file stem, Figure) for every figure of the export (module docstring)."""
     radial = table_grid(source.tables["radial"], "radial")
     bins = table_grid(source.tables["bins"], "bins")
     summary = table_grid(source.tables["summary"], "summary")
-    names: list[str] = []
     for (g, eta), series in sorted(_groups(radial).items()):
         for e, est in enumerate(radial.keys["estimator"]):
             for i, inc in enumerate(radial.keys["incidence"]):
                 tag = f"{est}-g{g:+.4f}-eta{eta:.4f}-inc{inc:g}"
                 title = f"{source.label}: {est}, g = {g:g}, eta = {eta:g}, theta_i = {inc:g} deg"
-                names += _save(_rd_figure(source, radial, summary, e, i, series, title), out, f"rd-{tag}")
+                yield f"rd-{tag}", _rd_figure(source, radial, summary, e, i, series, title)
                 if bins.values["S"].shape[7] * bins.values["S"].shape[8] > 1:  # one direction bin: nothing to show
-                    names += _save(_s_figure(source, bins, e, i, series, title), out, f"s-{tag}")
+                    yield f"s-{tag}", _s_figure(source, bins, e, i, series, title)
     try:
         maps = albedo_maps(source)
     except ExportError:
         maps = []  # one albedo per (g, eta), or no normal incidence: there is no map to draw
     for m in maps:
-        names += _save(_albedo_map_figure(source, m), out, f"albedo-map-{m.estimator}-g{m.g:+.4f}-eta{m.eta:.4f}")
+        yield f"albedo-map-{m.estimator}-g{m.g:+.4f}-eta{m.eta:.4f}", _albedo_map_figure(source, m)
+
+
+def write_plots(source: ExportSource, out_dir: str | Path) -> list[str]:
+    """Write the figures (PNG and SVG) into ``out_dir``; the file names."""
+    out = Path(out_dir)
+    names: list[str] = []
+    for stem, fig in figures(source):
+        names += _save(fig, out, stem)
     return names
 
 
