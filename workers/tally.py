@@ -117,9 +117,11 @@ class PhotonAccumulator:
         self.walk = {q: np.zeros((3, n_cfg)) for q in ("absorbed", "truncated")}  # sum, sum of squares, events
 
     def add_exits(self, estimator: str, flat: np.ndarray, g: np.ndarray, s: np.ndarray) -> None:
-        """One entry per photon: flat index [cfg, comp (0/1), spatial, direction], G and S."""
+        """One entry per photon: flat index [cfg, comp (0/1), spatial, direction], G and S. An
+        exit of zero weight (albedo 0: a weight of 0 can survive roulette) is no event, as in
+        :meth:`add_photons`: a bin it alone reached stays unresolved (0, NaN error), not 0 +- 0."""
         acc = self.linear[estimator]
-        for row, w in enumerate((g, g * g, s, s * s, None)):
+        for row, w in enumerate((g, g * g, s, s * s, (g != 0.0).astype(np.float64))):
             acc[row] += np.bincount(flat, weights=w, minlength=acc.shape[1])
 
     def add_photons(self, estimator: str, flat2: np.ndarray, g: np.ndarray, s: np.ndarray, square_key: np.ndarray, square_weight: np.ndarray) -> None:

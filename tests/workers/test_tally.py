@@ -10,7 +10,7 @@ import torch
 
 from workers.hybrid import photon_entries
 from workers.shard import ShardPlan, _Runner
-from workers.tally import photon_moments
+from workers.tally import PhotonAccumulator, photon_moments
 from workers.walk import EMPTY, RUNNING
 
 
@@ -56,3 +56,15 @@ def test_hybrid_kernel_squares_per_photon(walk_spec):
     got = np.bincount(key.reshape(-1), weights=weight.reshape(-1), minlength=size)
     np.testing.assert_allclose(got, _brute_squares(key, values, size), rtol=1e-12, atol=1e-300)
     assert np.all(g[:, :-1] >= 0) and (g[:, :-1] > 0).any() and flat2.shape == g.shape
+
+
+def test_zero_weight_exits_are_no_events():
+    """An exit of weight 0 (at albedo 0 a weight of 0 can survive roulette and leave) adds no
+    event: the bin it alone reached stays unresolved, 0 with a NaN error, never 0 +- 0."""
+    acc = PhotonAccumulator(["exits"], n_cfg=1, hist_shape=(2, 1, 1, 1))  # radial bins: one inside, one beyond r_max
+    flat = np.array([0, 0, 1])  # [cfg 0, single, spatial bin 0/1, direction 0]
+    acc.add_exits("exits", flat, np.array([0.5, 0.25, 0.0]), np.array([1.0, 0.5, 0.0]))
+    _stats, counts = acc.finish(3)
+    np.testing.assert_array_equal(counts["exits/bins_G"][0, 0, :, 0, 0, 0], [2, 0])
+    np.testing.assert_array_equal(counts["exits/radial_G"][0, 2], [2, 0])  # total
+    assert counts["exits/Rd"][0, 0] == 2

@@ -24,7 +24,8 @@ the dataset at that (g, eta) (a sweep's albedo axis):
   index-matched isotropic half space, :func:`workers.diffusion.burley_reduced_albedo`), both at
   the reduced albedo alpha' = alpha (1 - g) / (1 - alpha g) as renderers apply them, with their
   error (model - measured) against ``rho_eff_normal`` and its z-score, and against
-  ``rd_diffuse`` (what a diffusely lit surface shows).
+  ``rd_diffuse`` (what a diffusely lit surface shows);
+* ``truncated_normal``: the weight cut at the path cap (``max_scatter``), which rd_normal misses.
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ MAX_RULE = 16
 COLUMNS = ("albedo", "rd_normal", "rd_normal_stderr", "rho_eff_normal", "rho_eff_normal_stderr", "rd_normal_monotone",
            "rd_diffuse", "rd_diffuse_stderr", "rd_diffuse_quadrature_error", "rd_diffuse_monotone",
            "dipole_rho_eff", "dipole_error", "dipole_z", "dipole_error_diffuse",
-           "burley_rho_eff", "burley_error", "burley_z", "burley_error_diffuse", "photons")
+           "burley_rho_eff", "burley_error", "burley_z", "burley_error_diffuse", "truncated_normal",
+           "truncated_normal_stderr", "photons")
 
 
 DEFINITIONS = {
@@ -65,6 +67,8 @@ DEFINITIONS = {
                       "illumination of an index-matched isotropic half space)",
     "*_error": "model - rho_eff_normal", "*_z": "*_error / rho_eff_normal_stderr",
     "*_error_diffuse": "model - rd_diffuse",
+    "truncated_normal": "weight still alive at the path cap max_scatter per unit incident power, normal incidence: "
+                        "missing from rd_normal (albedo 1 needs the cap); NaN error where no path reached it",
 }
 """Meaning of each column (also written into the export's JSON)."""
 
@@ -153,6 +157,8 @@ def _map(source, est, g, eta, series, angles, rule) -> AlbedoMap:
     cols: dict[str, np.ndarray] = {"albedo": albedo, "rd_normal": rd, "rd_normal_stderr": rd_se,
                                    "rho_eff_normal": rd / entered, "rho_eff_normal_stderr": rd_se / entered,
                                    "rd_normal_monotone": isotonic(rd, rd_se),
+                                   "truncated_normal": np.array([r["truncated"] for r in normal]),
+                                   "truncated_normal_stderr": np.array([r["truncated_stderr"] for r in normal]),
                                    "photons": np.array([float(r["photons"]) for r in normal])}
     nan = np.full(len(albedo), np.nan)
     if rule is None:

@@ -18,6 +18,10 @@ measured total Rd / (1 - R_spec) (the batch estimate of the total, with the cova
 bins), which rhoEff estimates up to the part beyond the last node and the spline's integration
 error (< 1e-3 relative on pbrt's nodes, tests/workers/test_tabulated.py).
 
+Paths cut at the spec's ``max_scatter`` (albedo 1 has no other end) leave their weight out of
+the profile and rhoEff; it is reported per albedo as ``rhoTruncated`` with its standard error.
+A row without any exit (albedo 0) is all zeros with NaN standard errors (no events).
+
 As in pbrt's own diffusion tables, the Catmull-Rom spline can dip below 0 where a profile falls
 steeply (or to bins without events); pbrt's Pdf_Sr clamps there and its sampler never lands
 there, so the two differ by that mass, reported per albedo as ``profileNegativeMass``.
@@ -80,7 +84,8 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
             f"a pbrt table needs at least 2 distinct albedos at (g, eta) = ({g}, {eta}); {source.label} has "
             f"{albedos[:8]} ({estimator}): measure a sweep over albedo, e.g. \"sweep\": {{\"albedo\": "
             f"{{\"count\": 100, \"spacing\": \"pbrt\"}}, \"g\": [{g}], \"eta\": [{eta}]}}")
-    columns: dict[str, list] = {k: [] for k in ("profile", "stderr", "error", "measured", "measured_se", "beyond", "photons")}
+    columns: dict[str, list] = {k: [] for k in ("profile", "stderr", "error", "measured", "measured_se", "beyond", "photons",
+                                          "truncated", "truncated_se")}
     for _albedo, prof, summ, sigma_t in rows:
         edges = np.concatenate([prof.r_lo_mm, prof.r_hi_mm[-1:]]) * sigma_t
         if not check_pbrt_edges(edges):
@@ -96,6 +101,8 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
         columns["measured_se"].append(summ["Rd_stderr"] / entered)
         columns["beyond"].append(summ["Rd_beyond_rmax"] / entered)
         columns["photons"].append(float(summ["photons"]))
+        columns["truncated"].append(summ["truncated"] / entered)
+        columns["truncated_se"].append(summ["truncated_stderr"] / entered)
     radius = pbrt_radius_nodes(len(rows[0][1].r_lo_mm))
     profile = np.stack(columns["profile"])
     rho_eff, cdf = integrate_catmull_rom(radius, profile)
@@ -114,7 +121,8 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
         rho_eff_stderr=np.array(columns["measured_se"]), profile_node_error=np.stack(columns["error"]),
         rho_eff_measured=np.array(columns["measured"]), rho_eff_measured_stderr=np.array(columns["measured_se"]),
         rho_beyond_rmax=np.array(columns["beyond"]), photons=np.array(columns["photons"]),
-        profile_negative_mass=negative_mass(radius, profile), meta=meta,
+        profile_negative_mass=negative_mass(radius, profile), rho_truncated=np.array(columns["truncated"]),
+        rho_truncated_stderr=np.array(columns["truncated_se"]), meta=meta,
     )
 
 

@@ -14,6 +14,9 @@ names, arrays flat and row-major with rho outer (pbrt's ``profile[i * nRadius + 
     profileNodeError        estimated error of each node value from its bin (see nodes.py)
     rhoEffMeasured, rhoEffMeasuredStderr   Rd / (1 - R_spec) over all radii, measured
     rhoBeyondRmax           measured fraction leaving beyond the last bin edge
+    rhoTruncated, rhoTruncatedStderr  weight still alive at the path cap (max_scatter), per
+                            unit power entered: missing from profile and rhoEff (albedo 1
+                            needs the cap; 0 with a NaN error where no path reached it)
     profileNegativeMass     integral of the spline's negative lobes (<= 0): where pbrt's
                             Pdf_Sr clamps to 0 and its sampler never lands
     photons[nRho]           photons per albedo
@@ -25,7 +28,7 @@ NaN (an unresolved bin's standard error) is written as JSON ``null``.
 Binary (``*.bin``), every number little-endian::
 
     bytes 0..7     magic b"BSSRDFTB"
-    uint32         format version (1)
+    uint32         format version (2; version 1 had no rhoTruncated arrays)
     uint32 uint32  nRho, nRadius
     float64 x2     g, eta
     uint32         length L of the metadata JSON (every key above that is not an array)
@@ -35,7 +38,7 @@ Binary (``*.bin``), every number little-endian::
                    profileStderr[nRho*nRadius], rhoEffStderr[nRho],
                    profileNodeError[nRho*nRadius], rhoEffMeasured[nRho],
                    rhoEffMeasuredStderr[nRho], rhoBeyondRmax[nRho], photons[nRho],
-                   profileNegativeMass[nRho]
+                   profileNegativeMass[nRho], rhoTruncated[nRho], rhoTruncatedStderr[nRho]
 
 (float64 keeps every value; pbrt's Float is float32, a loader narrows.) :func:`read_pbrt` reads
 either file into a :class:`PbrtTable`; :meth:`PbrtTable.bssrdf_table` gives the arrays pbrt
@@ -58,7 +61,7 @@ from workers.tabulated import BSSRDFTable
 __all__ = ["PbrtTable", "read_pbrt", "write_pbrt_json", "write_pbrt_binary", "MAGIC", "BINARY_VERSION", "ARRAYS"]
 
 MAGIC = b"BSSRDFTB"
-BINARY_VERSION = 1
+BINARY_VERSION = 2
 
 # (JSON key, attribute, per-rho (1) or per-node (2)) in the binary's array order.
 ARRAYS = (
@@ -67,7 +70,8 @@ ARRAYS = (
     ("rhoEffStderr", "rho_eff_stderr", 1), ("profileNodeError", "profile_node_error", 2),
     ("rhoEffMeasured", "rho_eff_measured", 1), ("rhoEffMeasuredStderr", "rho_eff_measured_stderr", 1),
     ("rhoBeyondRmax", "rho_beyond_rmax", 1), ("photons", "photons", 1),
-    ("profileNegativeMass", "profile_negative_mass", 1),
+    ("profileNegativeMass", "profile_negative_mass", 1), ("rhoTruncated", "rho_truncated", 1),
+    ("rhoTruncatedStderr", "rho_truncated_stderr", 1),
 )
 
 
@@ -90,6 +94,8 @@ class PbrtTable:
     rho_beyond_rmax: np.ndarray
     photons: np.ndarray
     profile_negative_mass: np.ndarray
+    rho_truncated: np.ndarray
+    rho_truncated_stderr: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)  # estimator, units, provenance, ...
 
     def bssrdf_table(self) -> BSSRDFTable:
