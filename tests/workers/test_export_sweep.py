@@ -57,7 +57,7 @@ def test_pbrt_table_of_a_sweep_is_its_media_datasets(sweep_and_media):
         np.testing.assert_array_equal(table.profile_stderr[m], stderr)
         np.testing.assert_array_equal(table.profile_node_error[m], error)
         assert table.rho_eff_measured[m] == summary["Rd"] / entered
-        assert table.rho_eff_stderr[m] == summary["Rd_stderr"] / entered
+        assert table.rho_eff_measured_stderr[m] == summary["Rd_stderr"] / entered
     assert table.meta["provenance"]["dataset"] == "sweep-pbrt"
 
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from schema.bins import PBRT_RATIO, pbrt_radial_edges, pbrt_radius_nodes
 
-__all__ = ["node_values", "check_pbrt_edges", "HALF_WIDTH"]
+__all__ = ["node_values", "node_scales", "check_pbrt_edges", "HALF_WIDTH"]
 
 HALF_WIDTH = 0.5 * math.log(PBRT_RATIO)
 """h: half the width of a "pbrt" bin in ln r."""
@@ -83,7 +83,7 @@ def node_values(masses, masses_stderr) -> tuple[np.ndarray, np.ndarray, np.ndarr
     slope[-1] = (ln_f[-1] - ln_f[-2]) / (2.0 * h)
     known = np.isfinite(slope)
     factor = np.where(known, _sinhc_inverse(np.where(known, slope, 0.0) * h), 1.0)
-    scale = np.concatenate([[1.0 / w0], factor[1:] / (2.0 * h * r[1:])])
+    scale = np.concatenate([[1.0 / w0], factor[1:] / (2.0 * h * r[1:])])  # node value per unit bin mass
     values = m * scale
     stderr = se * scale
     error = np.abs(values * curv) * h * h / 3.0
@@ -94,3 +94,12 @@ def node_values(masses, masses_stderr) -> tuple[np.ndarray, np.ndarray, np.ndarr
     values = np.where(unresolved, 0.0, values)
     error = np.where(unresolved, np.nan, error)
     return values, stderr, error
+
+
+def node_scales(masses) -> np.ndarray:
+    """s_j with node value f(r_j) = s_j M_j (:func:`node_values`; the slope factor in s_j comes
+    from the neighbouring masses and is held fixed, as for the standard errors)."""
+    m = np.asarray(masses, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        values, _se, _err = node_values(m, np.ones_like(m))
+        return np.where(m > 0, values / m, 0.0)

@@ -13,10 +13,12 @@ single plus multiple scattering, from the bin masses by :func:`workers.exports.n
 (bins centred on the nodes, corrected for the local power-law slope, with the estimated error
 ``profileNodeError``). rhoEff and profileCDF are the Catmull-Rom integrals of the rows, as pbrt
 computes them (``IntegrateCatmullRom``), so a pbrt loader that recomputes them gets the same.
-Standard errors: ``profileStderr`` from the bins'; ``rhoEffStderr`` is the standard error of the
-measured total Rd / (1 - R_spec) (the batch estimate of the total, with the covariance of the
-bins), which rhoEff estimates up to the part beyond the last node and the spline's integration
-error (< 1e-3 relative on pbrt's nodes, tests/workers/test_tabulated.py).
+Standard errors: ``profileStderr`` from the bins'; ``rhoEffStderr`` of the exit tally is the
+standard error of rhoEff itself, the node errors through the integration weights with the bins'
+covariance (workers.exports.rho_eff); for estimators whose bins' covariance is not stored it is
+that of the measured total Rd / (1 - R_spec), which rhoEff estimates up to the part beyond the
+last node and the spline's integration error (< 1e-3 relative on pbrt's nodes,
+tests/workers/test_tabulated.py). ``rhoEffStderrMeaning`` says which.
 
 Paths cut at the spec's ``max_scatter`` (albedo 1 has no other end) leave their weight out of
 the profile and rhoEff; it is reported per albedo as ``rhoTruncated`` with its standard error.
@@ -39,6 +41,7 @@ from workers.catmull_rom import integrate_catmull_rom, negative_mass
 from .nodes import check_pbrt_edges, node_values
 from .pbrt_io import PbrtTable, write_pbrt_binary, write_pbrt_json
 from .profiles import radial_profiles, summary_rows
+from .rho_eff import DISJOINT_ESTIMATORS, MEANING, disjoint_stderr, rho_eff_coefficients
 from .source import ExportError, ExportSource
 
 __all__ = ["pbrt_tables", "write_pbrt", "NORMALISATION"]
@@ -85,7 +88,9 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
             f"{albedos[:8]} ({estimator}): measure a sweep over albedo, e.g. \"sweep\": {{\"albedo\": "
             f"{{\"count\": 100, \"spacing\": \"pbrt\"}}, \"g\": [{g}], \"eta\": [{eta}]}}")
     columns: dict[str, list] = {k: [] for k in ("profile", "stderr", "error", "measured", "measured_se", "beyond", "photons",
-                                          "truncated", "truncated_se")}
+                                          "truncated", "truncated_se", "rho_eff_se")}
+    radius = pbrt_radius_nodes(len(rows[0][1].r_lo_mm))
+    disjoint = estimator in DISJOINT_ESTIMATORS
     for _albedo, prof, summ, sigma_t in rows:
         edges = np.concatenate([prof.r_lo_mm, prof.r_hi_mm[-1:]]) * sigma_t
         if not check_pbrt_edges(edges):
@@ -103,7 +108,9 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
         columns["photons"].append(float(summ["photons"]))
         columns["truncated"].append(summ["truncated"] / entered)
         columns["truncated_se"].append(summ["truncated_stderr"] / entered)
-    radius = pbrt_radius_nodes(len(rows[0][1].r_lo_mm))
+        columns["rho_eff_se"].append(
+            disjoint_stderr(rho_eff_coefficients(radius, m), m / entered, m_se / entered, int(summ["photons"]))
+            if disjoint else summ["Rd_stderr"] / entered)
     profile = np.stack(columns["profile"])
     rho_eff, cdf = integrate_catmull_rom(radius, profile)
     meta = {
@@ -111,14 +118,14 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
         "units": UNITS,
         "normalisation": NORMALISATION,
         "nodeValues": NODE_VALUES,
-        "rhoEffStderrMeaning": "standard error of the measured total Rd / (1 - R_spec)",
+        "rhoEffStderrMeaning": MEANING["disjoint" if disjoint else "total"],
         "rhoEffMonotone": bool(np.all(np.diff(rho_eff) > 0)),
         "provenance": source.provenance("pbrt"),
     }
     return PbrtTable(
         g=g, eta=eta, rho_samples=np.array([row[0] for row in rows], dtype=np.float64), radius_samples=radius,
         profile=profile, rho_eff=rho_eff, profile_cdf=cdf, profile_stderr=np.stack(columns["stderr"]),
-        rho_eff_stderr=np.array(columns["measured_se"]), profile_node_error=np.stack(columns["error"]),
+        rho_eff_stderr=np.array(columns["rho_eff_se"]), profile_node_error=np.stack(columns["error"]),
         rho_eff_measured=np.array(columns["measured"]), rho_eff_measured_stderr=np.array(columns["measured_se"]),
         rho_beyond_rmax=np.array(columns["beyond"]), photons=np.array(columns["photons"]),
         profile_negative_mass=negative_mass(radius, profile), rho_truncated=np.array(columns["truncated"]),
