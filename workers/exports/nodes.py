@@ -21,8 +21,24 @@ On photon-beam-diffusion profiles (tests/workers/test_export_nodes.py) the actua
 within 1.5x that estimate plus 1e-6 of the profile maximum and below 1 % wherever the profile
 exceeds 1e-4 of its maximum.
 
-Node 0 (r = 0) gets the average density of its bin [0, r_1 / q), f_bar_0 = M_0 / (r_1 / q), with
-the error estimate |f(r_1) - f_bar_0| w_0 / (2 (r_1 - w_0 / 2)) of a linear trend over it.
+Node 0 (r = 0) is different: there is no bin centred on it in ln r, and the profile is not a
+power law there. It gets the average density of its bin [0, w_0), w_0 = r_1 / q (0.00228 optical
+radii), f_bar_0 = M_0 / w_0: an average over the bin, not f(0). The true f(0) = lim 2 pi r Rd(r)
+is not 0: single scattering makes Rd grow like 1 / r towards the entry point (a first vertex at
+depth z lights the point above it like z / d^3), so with sigma_t = 1, eta = 1 and normal
+incidence f(0) = (albedo / 2) int_0^inf u du / (u^2 + 1)^(3/2) = albedo / 2 per unit power
+entered, while multiple scattering (Rd finite at 0) adds nothing there; near 0 the slope
+diverges logarithmically, f(r) ~ f(0) - albedo r ln(1 / r). (Photon beam diffusion has f(0) = 0:
+its depth quadrature starts below the surface, so f ~ r there; a model artefact.) The bound that
+applies: where f is monotone on [0, w_0), f_bar_0 lies between f(w_0) and f(0), so
+
+    |f_bar_0 - f(0)| <= |f(0) - f(w_0)|,
+
+and node 0 moves rhoEff and profileCDF by W_0 |f_bar_0 - f(0)|, W_0 = 0.53 w_0 its Catmull-Rom
+integration weight (workers.exports.rho_eff). The reported ``node_error[0]`` is the linear-trend
+estimate |f(r_1) - f_bar_0| w_0 / (2 (r_1 - w_0 / 2)) of |f_bar_0 - f(0)|; it misses the
+logarithmic slope and falls short of the actual difference by up to ~2.5x on the exact single-
+plus multiple-scattering profiles of tests/workers/test_export_nodes.py (there 0.2-1 % of f(0)).
 
 Standard errors: se(M_j) times the same factor (the factor's own noise is second order and
 neglected). A bin with no events (mass 0, NaN standard error) gives 0 with a NaN error; where a
