@@ -122,7 +122,8 @@ def test_exr_read_back_with_openexr_equals_parquet(source, tmp_path):
                 assert parse_spec(header["bssrdf.spec"]).spec_hash() == source.spec_hash
                 assert header["bssrdf.spec"] == source.spec.canonical_json()
                 assert header["bssrdf.units"].startswith("S and S_stderr: 1/(mm^2 sr), per unit incident power")
-                assert header["bssrdf.axes"].startswith("x: radial bin, y: " + ("theta_s" if view == "r_theta_s" else "cos_theta_o"))
+                y_axis = "theta_s" if view == "r_theta_s" else "cos_theta_o"
+                assert header["bssrdf.axes"].startswith(f"x: radial bin, y: {y_axis}")
                 rows = bins.filter(pc.and_(pc.and_(pc.equal(bins["estimator"], est), pc.equal(bins["incidence_deg"], inc)),
                                            pc.and_(pc.equal(bins["channel"], ch), pc.equal(bins["component"], comp))))
                 for col in ("S", "S_stderr"):

@@ -74,7 +74,9 @@ def test_node_zero_is_the_first_bins_average_within_its_bound(albedo):
     workers/exports/nodes.py; the linear-trend estimate node_error[0] is of the right size
     (within 3x of the actual difference), not a bound. Node 1 is unaffected (within 1.5x its
     estimate, as above)."""
-    f = lambda r: _f_single_exact(r, albedo) + 2 * math.pi * r * float(pbd_multiple(r, 1 - albedo, albedo, 0.0, 1.0))  # noqa: E731
+    def f(r):
+        return _f_single_exact(r, albedo) + 2 * math.pi * r * float(pbd_multiple(r, 1 - albedo, albedo, 0.0, 1.0))
+
     edges = EDGES[:7]  # node 0 and 1 need the first three bins only; nodes do not depend on the count
     masses = np.array([integrate.quad(f, a, b, limit=200, epsrel=1e-10)[0] for a, b in zip(edges[:-1], edges[1:])])
     values, _stderr, error = node_values(masses, np.full_like(masses, 1e-3))
