@@ -223,7 +223,8 @@ def verified_bytes(fs: pafs.FileSystem, path: str, digest: str, what: str) -> by
             data = f.read()
     except (FileNotFoundError, OSError) as exc:
         raise ChecksumMismatch(f"{what} unreadable ({exc})") from exc
-    check_sha256(sha256_bytes(data), digest, what, "recorded", "its task must run again")
+    check_sha256(sha256_bytes(data), digest, what, "recorded",
+                 "the job fails with this error (nothing corrupt is folded); submit the spec again")
     return data
 
 
