@@ -12,7 +12,7 @@ import numpy as np
 from schema import SimulationSpec
 
 from .binning import BinLayout
-from .shard import Configs, bin_layout, build_configs
+from .plan import Configs, bin_layout, build_configs
 from .tally import ShardTally, units_name
 
 __all__ = ["Result", "Fold", "merge", "MergeError"]

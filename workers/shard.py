@@ -3,15 +3,14 @@
 The shard's photons [start, stop) of every configuration (incidence angle x channel) are
 launched in a fixed order, photon-major: (p, c) for p in range(start, stop) for c in configs.
 Finished lanes are harvested after every call of the step function and refilled in lane order,
-so the schedule, and with it every float64 sum, is fixed by the spec alone.
+so the schedule, and with it every float64 sum, is fixed by the spec alone.  What is fixed
+before the run starts is its plan (:mod:`workers.plan`).
 """
 
 from __future__ import annotations
 
-import json
 import math
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -19,177 +18,16 @@ import torch
 
 from schema import SimulationSpec
 
-from .binning import BinLayout
-from .connections import ConnectionGeometry, connection_function
+from .connections import connection_function
 from .engine import init_engine
-from .harvest import ExitBins, exit_function, finish_function
-from .optics import fresnel_dielectric, incident_refracted_direction
-from .rng import photon_words, stream_key, to_i32
-from .hybrid import K_SAMPLES, EntryLayout, FirstVertexGeometry, entries_function
-from .tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally, TallyLayout
-from .walk import EMPTY, EXITED, RUNNING, ConfigTable, Lanes, WalkParams, compile_enabled, step_function
+from .harvest import exit_function, finish_function
+from .hybrid import entries_function
+from .plan import CHUNK, EXIT_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, Configs, ShardPlan, build_configs
+from .rng import photon_words
+from .tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
+from .walk import EMPTY, EXITED, RUNNING, Lanes, step_function
 
 __all__ = ["run_shard", "ShardPlan", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
-
-CHUNK = 1 << 14  # lanes per call of the compiled step (one static shape for every shard); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
-EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
-CONNECT_CHUNK = 1 << 11  # lanes per call with connections: their kernel dominates, few photons run
-MAX_CHUNKS = 4  # 2^16 lanes in all: enough photons in flight to keep every chunk full
-TAIL_DIVISOR = 8  # exit walk: the last photons of a shard run in chunks of 1/TAIL_DIVISOR the lanes
-PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
-VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
-EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
-EXIT_BLOCK = 1 << 12  # exit events per call of the compiled exit lookup (a harvest of M2 has ~7500)
-HARVEST_DIVISOR = 8  # harvest once 1/HARVEST_DIVISOR of the lanes has finished (4 and 32 ran M1 slower here)
-
-
-@dataclass(frozen=True)
-class Configs:
-    """Per-configuration constants; configuration c = incidence index * n_channels + channel."""
-
-    incidence_deg: list[float]
-    channel_names: list[str]
-    sigma_t: np.ndarray  # [n_cfg] 1/mm
-    albedo: np.ndarray
-    g: np.ndarray
-    r_spec: np.ndarray  # specular reflectance at entry
-    table: ConfigTable
-    eta: float
-
-    @property
-    def n(self) -> int:
-        return len(self.sigma_t)
-
-    def channel_of(self, c: int) -> int:
-        return c % len(self.channel_names)
-
-    def incidence_of(self, c: int) -> float:
-        return self.incidence_deg[c // len(self.channel_names)]
-
-
-def build_configs(spec: SimulationSpec) -> Configs:
-    channels = spec.channels()
-    eta = float(spec.medium.eta)
-    rows = []
-    for i_inc, theta in enumerate(spec.incidence_deg):
-        cos_i = math.cos(math.radians(theta))
-        r_spec = float(fresnel_dielectric(torch.tensor(cos_i, dtype=torch.float64), eta))
-        ux0, _, uz0 = incident_refracted_direction(math.radians(theta), eta)
-        for i_ch, ch in enumerate(channels):
-            fingerprint = json.dumps(
-                [i_inc, theta, i_ch, ch.sigma_a, ch.sigma_s, ch.g, eta], separators=(",", ":")
-            )
-            k0, k1 = stream_key(spec.seed, fingerprint)
-            rows.append((ch.sigma_t, ch.albedo, ch.g, r_spec, ux0, uz0, k0, k1))
-    cols = list(zip(*rows))
-    f32 = lambda v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
-    table = ConfigTable(
-        albedo=f32(cols[1]), g=f32(cols[2]), w0=f32([1.0 - r for r in cols[3]]),
-        ux0=f32(cols[4]), uz0=f32(cols[5]),
-        k0=to_i32(torch.tensor(cols[6], dtype=torch.int64)), k1=to_i32(torch.tensor(cols[7], dtype=torch.int64)),
-    )  # fmt: skip
-    return Configs(
-        incidence_deg=list(spec.incidence_deg), channel_names=[c.name for c in channels],
-        sigma_t=np.array(cols[0]), albedo=np.array(cols[1]), g=np.array(cols[2]),
-        r_spec=np.array(cols[3]), table=table, eta=eta,
-    )  # fmt: skip
-
-
-def bin_layout(spec: SimulationSpec) -> BinLayout:
-    return BinLayout(spec.radial_edges_mm(), spec.theta_s_edges(), spec.cos_theta_o_edges(), spec.phi_o_edges())
-
-
-def chunk_count(n_launch: int, chunk: int) -> int:
-    """Chunks of `chunk` lanes for a shard: enough that each lane runs about PHOTONS_PER_LANE
-    photons (fewer lanes keep the tail, where lanes fall idle, short), at most MAX_CHUNKS."""
-    return int(min(MAX_CHUNKS, max(1, math.ceil(n_launch / (PHOTONS_PER_LANE * chunk)))))
-
-
-@dataclass(frozen=True)
-class ShardPlan:
-    """Everything fixed about running shard `shard_index` of `spec`, built once (:meth:`build`).
-
-    estimators: what is tallied ("exits", "connections", "hybrid"); connect: vertices are
-    connected to every bin (1 step per call); exits: exit events are binned (exit tally or the
-    hybrid's multiple scattering); first_vertex: the hybrid's first-vertex connections.
-    chunk / n_lanes: lanes per step call and in all; tail_chunk: lanes of the shard's tail
-    (None: no tail chunk); n_steps: steps per call.
-    """
-
-    spec: SimulationSpec
-    shard_index: int
-    cfgs: Configs
-    layout: BinLayout
-    start: int
-    stop: int
-    estimators: tuple[str, ...]
-    compiled: bool
-    chunk: int
-    n_lanes: int
-    tail_chunk: int | None
-    params: WalkParams
-    n_steps: int
-    geo: ConnectionGeometry
-    exit_bins: ExitBins
-    first_vertex: FirstVertexGeometry | None
-    entry_layout: EntryLayout
-
-    @property
-    def n_launch(self) -> int:
-        """Photons of the shard, all configurations."""
-        return (self.stop - self.start) * self.cfgs.n
-
-    @property
-    def connect(self) -> bool:
-        return "connections" in self.estimators
-
-    @property
-    def exits(self) -> bool:
-        return "exits" in self.estimators or "hybrid" in self.estimators
-
-    @classmethod
-    def build(cls, spec: SimulationSpec, shard_index: int) -> "ShardPlan":
-        cfgs, layout = build_configs(spec), bin_layout(spec)
-        start, stop = spec.shard_photon_range(shard_index)
-        estimators = ("exits", "connections") if spec.estimator == "both" else (spec.estimator,)
-        compiled = compile_enabled()
-        connect = "connections" in estimators
-        chunk = CONNECT_CHUNK if connect else CHUNK if compiled else EAGER_CHUNK
-        abs_g = np.abs(cfgs.table.g.numpy())
-        params = WalkParams(
-            inv_eta=1.0 / cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
-            hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed",
-        )  # fmt: skip
-        sigma_t = torch.tensor(cfgs.sigma_t, dtype=torch.float64)
-        radial_mm = torch.from_numpy(layout.radial_mm[[cfgs.channel_of(c) for c in range(cfgs.n)]])  # [cfg, n_r + 1]
-        edges_opt = radial_mm * sigma_t[:, None]
-        counts = dict(n_theta=layout.n_theta, n_cos=layout.n_cos, n_phi=layout.n_phi)
-        geo = ConnectionGeometry(
-            r_lo=edges_opt[:, :-1].to(torch.float32).contiguous(), r_hi=edges_opt[:, 1:].to(torch.float32).contiguous(), eta=cfgs.eta, **counts,
-        )  # fmt: skip
-        starts = torch.tensor([a for a, _ in spec.batch_photon_ranges(shard_index)], dtype=torch.int64)
-        exit_bins = ExitBins(radial_mm=radial_mm, sigma_t=sigma_t, batch_starts=starts, inv_eta=params.inv_eta, **counts)
-        first_vertex = None
-        if "hybrid" in estimators:
-            t = cfgs.table
-            first_vertex = FirstVertexGeometry(
-                edges=edges_opt.to(torch.float32).contiguous(), u0x=t.ux0, u0z=t.uz0, w0=t.w0, albedo=t.albedo,
-                g=t.g, k0=t.k0, k1=t.k1, eta=cfgs.eta, k=min(K_SAMPLES, layout.n_r * layout.n_theta), hg_branch=params.hg_branch, **counts,
-            )  # fmt: skip
-        n_lanes = chunk_count((stop - start) * cfgs.n, chunk) * chunk
-        n_sp, n_dir = (layout.n_r + 1) * layout.n_theta, layout.n_cos * layout.n_phi
-        offsets = tuple(int(o) for o in TallyLayout(cfgs.n, layout.shape).square_offsets[:4])
-        entry_layout = EntryLayout(n_sp=n_sp, n_dir=n_dir, n_theta=layout.n_theta, square_offsets=offsets)
-        return cls(
-            spec=spec, shard_index=shard_index, cfgs=cfgs, layout=layout, start=start, stop=stop, estimators=estimators,
-            compiled=compiled, chunk=chunk, n_lanes=n_lanes,
-            # A step costs the same for idle lanes: a shard's last photons, the longest paths, are
-            # stepped in one short chunk (compiled: a second shape) once they fit.  Not with
-            # connections, whose chunks are short already and whose kernel dominates.
-            tail_chunk=None if connect else chunk // TAIL_DIVISOR,
-            params=params, n_steps=1 if connect else EXIT_STEPS_PER_CALL, geo=geo, exit_bins=exit_bins, first_vertex=first_vertex,
-            entry_layout=entry_layout,
-        )  # fmt: skip
 
 
 class _Runner:
