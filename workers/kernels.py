@@ -229,5 +229,11 @@ def compile_kernel(fn: Callable, name: str, constants: Any = None) -> Callable:
     name and constants (anything with a faithful repr: the values fn closes over) identify the
     kernel; the arguments of the first call (and of any later call with other shapes) complete
     the key.  The artifact specialises on those shapes, so callers pass fixed-size chunks.
+
+    Arguments may be tensors, and lists and dataclasses of them, passed whole (a structure of
+    arrays such as :class:`workers.walk.Lanes` or a chunk of views into one): the guards read
+    their fields, no pytree registration is needed, and in-place writes reach the viewed
+    storage.  Results are tensors or tuples of them: a loaded artifact would rebuild a dataclass
+    result by its class name, which ``load_compiled_function`` cannot resolve.
     """
     return _Kernel(fn, name, constants)

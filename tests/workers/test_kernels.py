@@ -104,6 +104,38 @@ def test_kernel_is_saved_loaded_and_rebuilt(tmp_path, monkeypatch, caplog):
     assert saved[0].read_bytes() != b"not an artifact"
 
 
+@dataclass
+class _Pair:
+    """A structure of arrays, as workers.walk.Lanes."""
+
+    a: torch.Tensor
+    b: torch.Tensor
+
+
+def _accumulate(pair: _Pair, scale: float):
+    pair.a.copy_(pair.a + pair.b * scale)
+    return (pair.a.sum(),)
+
+
+def test_a_dataclass_of_views_is_passed_whole_saved_and_loaded(tmp_path, monkeypatch):
+    """Kernels take structures of arrays whole (chunks of workers.walk.Lanes): the artifact of a
+    kernel called with a dataclass of views loads in a new kernel object (as in a new process),
+    and the in-place writes of both reach the viewed storage, each in its own chunk."""
+    monkeypatch.setenv("BSSRDF_KERNEL_CACHE", str(tmp_path))
+    a, b = torch.zeros(32), torch.arange(32.0)
+    chunks = [_Pair(a[i : i + 16], b[i : i + 16]) for i in (0, 16)]
+    first = compile_kernel(_accumulate, "accumulate")
+    assert float(first(chunks[0], 2.0)[0]) == float(b[:16].sum() * 2.0)
+    saved = sorted(tmp_path.glob("accumulate-*.pt2"))
+    assert len(saved) == 1
+    stamp = saved[0].stat().st_mtime_ns
+
+    loaded = compile_kernel(_accumulate, "accumulate")
+    assert float(loaded(chunks[1], 2.0)[0]) == float(b[16:].sum() * 2.0)
+    assert saved[0].stat().st_mtime_ns == stamp and sorted(tmp_path.glob("accumulate-*.pt2")) == saved, "loaded, not compiled"
+    assert torch.equal(a, b * 2.0), "both chunks written in place, nothing else"
+
+
 def test_calls_with_a_seen_signature_skip_the_guards(tmp_path, monkeypatch):
     """After arguments of one signature passed a variant's guards, calls with that signature go
     straight to its compiled function; other shapes, dtypes or scalar values still go through the
