@@ -26,8 +26,9 @@ with a float cos_o that rounds to 0 at grazing angles blew up to 1e17-1e24 at et
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import lru_cache
+from typing import Iterator
 
 import torch
 
@@ -35,9 +36,87 @@ from .binning import TWO_PI, outgoing_azimuth, uniform_index, wrap_angle
 from .conventions import PURPOSE_CONNECT
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, hg_pdf, refracted_cos, transmittance_cos_ratio
-from .rng import philox4x32, uniform_halfopen
+from .rng import philox4x32, photon_words, uniform_halfopen
+from .walk import ConfigTable
 
-__all__ = ["ConnectionGeometry", "connect_uniform", "connect_phase", "connection_function"]
+__all__ = ["ConnectionGeometry", "Vertices", "VertexBuffer", "connect_uniform", "connect_phase", "connection_function"]
+
+
+@dataclass(frozen=True)
+class Vertices:
+    """Scattering vertices of the walk, structure of arrays (one tensor per field, length V).
+
+    x, y, z: float32 optical position x_p; ux, uy, uz: unit direction of travel arriving (w_p);
+    vx, vy, vz: the direction leaving, the walk's own phase-function sample there; w: weight
+    arriving; cfg, photon: int64 configuration and photon index; draw: int32 Philox draw index of
+    the step that reached the vertex; multiple: int64 1 after two or more scatterings (component
+    ``multiple``), 0 at the first vertex (``single``).
+    """
+
+    x: torch.Tensor
+    y: torch.Tensor
+    z: torch.Tensor
+    ux: torch.Tensor
+    uy: torch.Tensor
+    uz: torch.Tensor
+    vx: torch.Tensor
+    vy: torch.Tensor
+    vz: torch.Tensor
+    w: torch.Tensor
+    cfg: torch.Tensor
+    photon: torch.Tensor
+    draw: torch.Tensor
+    multiple: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    def _map(self, fn) -> "Vertices":
+        return Vertices(*(fn(getattr(self, f.name)) for f in fields(self)))
+
+    @classmethod
+    def cat(cls, parts: list["Vertices"]) -> "Vertices":
+        """The vertices of parts, one after another."""
+        return cls(*(torch.cat([getattr(p, f.name) for p in parts]) for f in fields(cls)))
+
+    def slice(self, start: int, stop: int | None = None) -> "Vertices":
+        """Vertices [start, stop)."""
+        return self._map(lambda t: t[start:stop])
+
+    def pad(self, n: int) -> "Vertices":
+        """At least n vertices: copies of the first one appended (for a kernel of static shape)."""
+        if len(self) >= n:
+            return self
+        return self._map(lambda t: torch.cat((t, t[:1].expand(n - len(t), *t.shape[1:]))))
+
+
+class VertexBuffer:
+    """Vertices collected from the walk until a chunk of `chunk` vertices is full."""
+
+    def __init__(self, chunk: int):
+        self.chunk = chunk
+        self.parts: list[Vertices] = []
+        self.count = 0
+
+    def add(self, v: Vertices) -> bool:
+        """Keep v; returns whether a full chunk is waiting."""
+        self.parts.append(v)
+        self.count += len(v)
+        return self.count >= self.chunk
+
+    def chunks(self, force: bool) -> Iterator[Vertices]:
+        """The collected vertices in chunks of `chunk`, in order; a short last chunk only if
+        force (else it stays in the buffer)."""
+        if not self.parts:
+            return
+        v = Vertices.cat(self.parts)
+        self.parts, self.count = [], 0
+        for a in range(0, len(v), self.chunk):
+            b = min(len(v), a + self.chunk)
+            if b - a < self.chunk and not force:
+                self.parts, self.count = [v.slice(a)], len(v) - a
+                return
+            yield v.slice(a, b)
 
 @dataclass(frozen=True)
 class ConnectionGeometry:
@@ -66,15 +145,18 @@ def _direction_bin(xo, yo, dx, dy, cos_in, geo: ConnectionGeometry):
     return cos_o, idx
 
 
-def connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, geo: ConnectionGeometry):
+def connect_uniform(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     """Uniform-technique samples of every spatial bin for a chunk of V vertices.
 
-    Vertex tensors have shape [V] (position, incoming direction, weight arriving, per-vertex
-    albedo, g, configuration; Philox counter words c_lo, c_hi (the photon index) and draw index, and
-    key words k0, k1, all int32 bit patterns as in the walk).  Returns (G, S, spatial, direction)
-    of shape [V, n_r * n_theta]: the MIS-weighted contribution to G, G / cos_o, the spatial bin
-    index (r * n_theta + theta) and the direction bin index.
+    Each vertex draws from its photon's stream (Philox counter words: the photon index and the
+    vertex's draw; key: its configuration's, as in the walk); albedo and g are its
+    configuration's.  Returns (G, S, spatial, direction) of shape [V, n_r * n_theta]: the
+    MIS-weighted contribution to G, G / cos_o, the spatial bin index (r * n_theta + theta) and
+    the direction bin index.
     """
+    albedo, g, cfg = table.albedo[v.cfg], table.g[v.cfg], v.cfg
+    c_lo, c_hi = photon_words(v.photon)
+    draw, k0, k1 = v.draw, table.k0[cfg], table.k1[cfg]
     n_r, n_t = geo.n_r, geo.n_theta
     n_bins = n_r * n_t
     n_pairs = (n_bins + 1) // 2
@@ -93,18 +175,18 @@ def connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, c_lo, c_hi, draw,
     theta = theta_lo[None, :] + u_t * dtheta
     xo, yo = r * torch.cos(theta), r * torch.sin(theta)
 
-    dx, dy = xo - px[:, None], yo - py[:, None]
-    dz = -pz[:, None]  # vertex below the surface: dz > 0
+    dx, dy = xo - v.x[:, None], yo - v.y[:, None]
+    dz = -v.z[:, None]  # vertex below the surface: dz > 0
     d2 = dx * dx + dy * dy + dz * dz
     d = torch.sqrt(d2)
     cos_in = dz / d
-    mu = (ux[:, None] * dx + uy[:, None] * dy + uz[:, None] * dz) / d
+    mu = (v.ux[:, None] * dx + v.uy[:, None] * dy + v.uz[:, None] * dz) / d
     q_p = hg_pdf(mu, g[:, None]) * cos_in / d2
     # q_u = 1/(r dr dtheta) is infinite at r = 0: the clamp makes its MIS weight exactly 0 there.
     q_u = 1.0 / torch.clamp(r * dr * dtheta, min=1e-30)
     # f / (q_u + q_p) to G; to S the same with T cos_in / cos_o for T cos_in (bounded, exactly 1
     # at eta = 1 however grazing: no division by a cos_o that rounds to 0).
-    base = (w * albedo)[:, None] * torch.exp(-d) / (q_p + q_u)
+    base = (v.w * albedo)[:, None] * torch.exp(-d) / (q_p + q_u)
     G = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
     S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (hg_pdf(mu, g[:, None]) / d2)
     _, direction = _direction_bin(xo, yo, dx, dy, cos_in, geo)
@@ -112,17 +194,20 @@ def connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, c_lo, c_hi, draw,
     return G, S, spatial, direction
 
 
-def connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo: ConnectionGeometry):
-    """Phase-technique sample: the walk's own scattering direction v at each of V vertices.
+def connect_phase(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
+    """Phase-technique sample: the walk's own scattering direction (vx, vy, vz) at each of V
+    vertices.
 
     Returns (G, S, spatial, direction) of shape [V]; spatial = r * n_theta + theta, or
     n_r * n_theta + theta beyond r_max (the overflow ring, where q_u = 0).  G = 0 where v
     points into the medium.
     """
+    albedo, g, cfg, w = table.albedo[v.cfg], table.g[v.cfg], v.cfg, v.w
+    vx, vy, vz = v.vx, v.vy, v.vz
     n_t = geo.n_theta
     up = vz > 0
-    t = -pz / torch.clamp(vz, min=1e-30)
-    xo, yo = px + t * vx, py + t * vy
+    t = -v.z / torch.clamp(vz, min=1e-30)
+    xo, yo = v.x + t * vx, v.y + t * vy
     r = torch.sqrt(xo * xo + yo * yo)
     edges_hi = geo.r_hi[cfg]  # [V, n_r]
     ir = (r[:, None] >= edges_hi).sum(dim=1)  # bins are [lo, hi): count edges at or below r
@@ -133,7 +218,7 @@ def connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo: Co
     dtheta = TWO_PI / n_t
     it = uniform_index(wrap_angle(torch.atan2(yo, xo)), 0.0, TWO_PI, n_t)
     cos_in = torch.clamp(vz, 0.0, 1.0)
-    mu = ux * vx + uy * vy + uz * vz
+    mu = v.ux * vx + v.uy * vy + v.uz * vz
     q_p = hg_pdf(mu, g) * cos_in / (t * t)
     q_u = torch.where(inside, 1.0 / torch.clamp(r * dr * dtheta, min=1e-30), torch.zeros_like(r))
     # G = w albedo exp(-t) T q_p / (q_p + q_u); S the same with T cos_in / cos_o for T and
@@ -146,10 +231,8 @@ def connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo: Co
     return G, S, spatial, direction
 
 
-def _connect_both(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, geo: ConnectionGeometry):
-    uniform = connect_uniform(px, py, pz, ux, uy, uz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, geo)
-    phase = connect_phase(px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, geo)
-    return uniform, phase
+def _connect_both(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
+    return connect_uniform(v, table, geo), connect_phase(v, table, geo)
 
 
 @lru_cache(maxsize=None)

@@ -56,7 +56,8 @@ import torch
 from .binning import TWO_PI, outgoing_azimuth, uniform_index, wrap_angle
 from .kernels import compile_kernel
 from .optics import refracted_cos
-from .walk import EMPTY, RUNNING, TRUNCATED, refill_lanes
+from .walk import EMPTY, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_lanes
+
 __all__ = ["ExitBins", "batch_index", "count_le", "exit_bins", "exit_function", "finish_and_refill", "finish_function"]
 
 
@@ -114,14 +115,14 @@ def batch_index(photon: torch.Tensor, batch_starts: torch.Tensor) -> torch.Tenso
     return count_le(batch_starts[None, :], torch.zeros_like(photon), photon) - 1
 
 
-def exit_bins(idx, x, y, ux, uy, uz, w, nscat, photon, cfg, bins: ExitBins):
+def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     """(flat, batch, G, S) of the exit events in lanes idx (int64 [E]); see the module docstring.
 
     flat: int64 histogram index [cfg, component, radial, theta_s, cos_o, phi_o]; batch: int64
     batch of the photon; G = w and S = w / cos_o float64.
     """
-    cfg = cfg[idx]
-    xd, yd = x[idx].double(), y[idx].double()
+    cfg = lanes.cfg[idx]
+    xd, yd = lanes.x[idx].double(), lanes.y[idx].double()
     r_mm = torch.sqrt(xd * xd + yd * yd) / bins.sigma_t[cfg]
     ir = torch.clamp(count_le(bins.radial_mm, cfg, r_mm) - 1, 0, bins.n_r)
     if bins.n_theta > 1:
@@ -129,31 +130,26 @@ def exit_bins(idx, x, y, ux, uy, uz, w, nscat, photon, cfg, bins: ExitBins):
     else:  # one theta_s bin (normal incidence): no angle needed
         it = torch.zeros_like(ir)
     # An exit refracted out, so cos_o > 0; the clamp only keeps a padding lane finite.
-    cos_o = torch.clamp(refracted_cos(uz[idx].double(), bins.inv_eta), min=1e-300)
+    cos_o = torch.clamp(refracted_cos(lanes.uz[idx].double(), bins.inv_eta), min=1e-300)
     ic = uniform_index(cos_o, 0.0, 1.0, bins.n_cos)
-    ip = uniform_index(outgoing_azimuth(xd, yd, ux[idx].double(), uy[idx].double()), 0.0, TWO_PI, bins.n_phi)
-    comp = (nscat[idx] >= 2).to(torch.int64)
+    ip = uniform_index(outgoing_azimuth(xd, yd, lanes.ux[idx].double(), lanes.uy[idx].double()), 0.0, TWO_PI, bins.n_phi)
+    comp = (lanes.nscat[idx] >= 2).to(torch.int64)
     n_sp = (bins.n_r + 1) * bins.n_theta
     n_dir = bins.n_cos * bins.n_phi
     flat = ((cfg * 2 + comp) * n_sp + ir * bins.n_theta + it) * n_dir + ic * bins.n_phi + ip
-    batch = batch_index(photon[idx], bins.batch_starts)
-    wd = w[idx].double()
+    batch = batch_index(lanes.photon[idx], bins.batch_starts)
+    wd = lanes.w[idx].double()
     return flat, batch, wd, wd / cos_o
-
-
-def _exit_block(idx: torch.Tensor, lanes_tensors: list[torch.Tensor], bins: ExitBins):
-    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, *_rest) = lanes_tensors
-    return exit_bins(idx, x, y, ux, uy, uz, w, nscat, photon, cfg, bins)
 
 
 @lru_cache(maxsize=None)
 def exit_function(compiled: bool):
-    """:func:`exit_bins` over a block of lane indices into lanes in :class:`workers.walk.Lanes`
-    order, compiled for one block size (the caller pads) or eager."""
-    return compile_kernel(_exit_block, "exit_bins") if compiled else _exit_block
+    """:func:`exit_bins` over a block of lane indices, compiled for one block size (the caller
+    pads) or eager."""
+    return compile_kernel(exit_bins, "exit_bins") if compiled else exit_bins
 
 
-def finish_and_refill(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor], launch: torch.Tensor, batch_starts: torch.Tensor):
+def finish_and_refill(lanes: Lanes, table: ConfigTable, launch: torch.Tensor, batch_starts: torch.Tensor):
     """Record the finished lanes and start new photons in every lane not running.
 
     For each lane, before the refill: key = batch * n_cfg + cfg of a finished photon (EXITED,
@@ -165,16 +161,15 @@ def finish_and_refill(lanes_tensors: list[torch.Tensor], table: list[torch.Tenso
     integer reductions: the float sums are left to the caller's ordered bincount, so results do
     not depend on how the kernel is threaded.
     """
-    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, *_rest) = lanes_tensors
-    n_cfg = launch[3]
+    n_cfg, status = launch[3], lanes.status
     done = (status != RUNNING) & (status != EMPTY)
-    batch = batch_index(photon, batch_starts)
-    key = torch.where(done, batch * n_cfg + cfg, batch_starts.shape[0] * n_cfg)
-    absorbed_d = torch.where(done, absorbed.double(), 0.0)
-    truncated = torch.where(status == TRUNCATED, w.double(), 0.0)
+    batch = batch_index(lanes.photon, batch_starts)
+    key = torch.where(done, batch * n_cfg + lanes.cfg, batch_starts.shape[0] * n_cfg)
+    absorbed_d = torch.where(done, lanes.absorbed.double(), 0.0)
+    truncated = torch.where(status == TRUNCATED, lanes.w.double(), 0.0)
     n_free = (status != RUNNING).sum()
-    steps = torch.where(done, step.to(torch.int64), 0).sum()
-    refill_lanes(lanes_tensors, table, launch)
+    steps = torch.where(done, lanes.step.to(torch.int64), 0).sum()
+    refill_lanes(lanes, table, launch)
     return key, absorbed_d, truncated, n_free, steps
 
 

@@ -47,7 +47,7 @@ from .harvest import ExitBins, count_le, exit_bins
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, hg_pdf, refracted_cos, sample_exponential, sample_hg, scatter_direction, transmittance_cos_ratio
 from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
-from .walk import EXITED
+from .walk import EXITED, Lanes
 
 __all__ = ["K_SAMPLES", "FirstVertexGeometry", "EntryLayout", "strata", "first_vertex_samples", "photon_entries", "entries_function"]
 
@@ -191,7 +191,7 @@ class EntryLayout:
     square_offsets: tuple[int, int, int, int]
 
 
-def photon_entries(idx, lanes_tensors, bins: ExitBins, geo: FirstVertexGeometry, lay: EntryLayout):
+def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVertexGeometry, lay: EntryLayout):
     """Every entry of the photons finished in lanes idx, and their squares per photon.
 
     Per photon E = k + 2 entries: the k uniform and the phase first-vertex samples (single) and
@@ -202,11 +202,10 @@ def photon_entries(idx, lanes_tensors, bins: ExitBins, geo: FirstVertexGeometry,
     entries of the photon with the same key): summed per key, the sum over photons of the
     photon's squared contribution (workers.tally.photon_moments, here fused into the kernel).
     """
-    (x, y, _z, ux, uy, uz, w, _absorbed, nscat, _step, photon, cfg_all, status, *_rest) = lanes_tensors
-    cfg = cfg_all[idx]
-    spatial, direction, g, s = first_vertex_samples(photon[idx], cfg, geo)
-    flat, _batch, ge, se = exit_bins(idx, x, y, ux, uy, uz, w, nscat, photon, cfg_all, bins)
-    keep = (status[idx] == EXITED) & (nscat[idx] >= 2)
+    cfg = lanes.cfg[idx]
+    spatial, direction, g, s = first_vertex_samples(lanes.photon[idx], cfg, geo)
+    flat, _batch, ge, se = exit_bins(idx, lanes, bins)
+    keep = (lanes.status[idx] == EXITED) & (lanes.nscat[idx] >= 2)
     spatial = torch.cat((spatial, (torch.div(flat, lay.n_dir, rounding_mode="floor") % lay.n_sp)[:, None]), dim=1)
     direction = torch.cat((direction, (flat % lay.n_dir)[:, None]), dim=1)
     g = torch.cat((g, torch.where(keep, ge, 0.0)[:, None]), dim=1)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -18,47 +19,67 @@ import torch
 
 from schema import SimulationSpec
 
-from .connections import connection_function
+from .connections import Vertices, VertexBuffer, connection_function
 from .engine import init_engine
 from .harvest import exit_function, finish_function
 from .hybrid import entries_function
 from .plan import CHUNK, EXIT_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, Configs, ShardPlan, build_configs
-from .rng import photon_words
 from .tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
 from .walk import EMPTY, EXITED, RUNNING, Lanes, step_function
 
 __all__ = ["run_shard", "ShardPlan", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
 
 
+@dataclass(frozen=True)
+class _Kernels:
+    """The (compiled or eager) functions a shard run calls, chosen once from its plan."""
+
+    step: Callable  # steps a chunk of lanes in place (workers.walk.step_function)
+    finish: Callable  # records finished lanes and refills them (workers.harvest.finish_and_refill)
+    exits: Callable  # exit events' bins (workers.harvest.exit_bins)
+    entries: Callable  # the hybrid's entries per photon (workers.hybrid.photon_entries)
+    connect: Callable  # both connection techniques for a chunk of vertices
+
+    @classmethod
+    def for_plan(cls, plan: ShardPlan) -> "_Kernels":
+        c = plan.compiled
+        return cls(
+            step=step_function(plan.params, plan.n_steps, plan.connect, c), finish=finish_function(c), exits=exit_function(c),
+            entries=entries_function(c), connect=connection_function(c),
+        )  # fmt: skip
+
+
+@dataclass
+class _Counters:
+    """Work done, for the shard's info: steps = calls x steps per call; photon_steps = interaction
+    steps (free paths) of finished photons; vertices = connected scattering vertices."""
+
+    steps: int = 0
+    photon_steps: int = 0
+    vertices: int = 0
+
+
 class _Runner:
-    """The mutable bookkeeping of one shard run (kept out of the pure entry point)."""
+    """The mutable bookkeeping of one shard run (kept out of the pure entry point): the lanes and
+    the chunks they are stepped in, the accumulators, the vertices waiting for connection."""
 
     def __init__(self, plan: ShardPlan, progress: Callable[[int], None] | None):
-        self.plan = plan
-        self.progress = progress
-        spec, cfgs = plan.spec, plan.cfgs
-        self.next_launch = 0
+        self.plan, self.progress = plan, progress
+        self.kernels = _Kernels.for_plan(plan)
+        self.count = _Counters()
         batch_estimators = [e for e in plan.estimators if e in BATCH_ESTIMATORS]
         photon_estimators = [e for e in plan.estimators if e not in BATCH_ESTIMATORS]
-        self.acc = BatchAccumulator(batch_estimators, cfgs.n, plan.layout.shape, spec.batch_photon_ranges(plan.shard_index))
-        self.photons = PhotonAccumulator(photon_estimators, cfgs.n, plan.layout.shape)
-        self.chunk = plan.chunk
+        ranges = plan.spec.batch_photon_ranges(plan.shard_index)
+        self.acc = BatchAccumulator(batch_estimators, plan.cfgs.n, plan.layout.shape, ranges)
+        self.photons = PhotonAccumulator(photon_estimators, plan.cfgs.n, plan.layout.shape)
+        self.vertex_buffer = VertexBuffer(VERTEX_CHUNK)
+        # Lanes: [0, active * chunk) hold every running photon; chunks are views stepped one by one.
         self.lanes = Lanes.empty(plan.n_lanes)
-        self.lanes_list = self.lanes.tensors()
-        self.chunks = [[t[a : a + self.chunk] for t in self.lanes_list] for a in range(0, plan.n_lanes, self.chunk)]
-        self.active = len(self.chunks)  # chunks [0, active) hold every running lane
+        self.chunk = plan.chunk
+        self.chunks = [self.lanes.view(a, a + self.chunk) for a in range(0, plan.n_lanes, self.chunk)]
+        self.active = len(self.chunks)
+        self.next_launch = 0
         self.tail_lanes = None  # photons still running when the tail chunk took over
-        self.table_tensors = cfgs.table.tensors()
-        self.step = step_function(plan.params, plan.n_steps, plan.connect, plan.compiled)
-        self.finish_fn = finish_function(plan.compiled)
-        self.connect_fn = connection_function(plan.compiled)
-        self.exit_fn = exit_function(plan.compiled)
-        self.entries_fn = entries_function(plan.compiled)
-        self.vertex_buf: list[list[torch.Tensor]] = []
-        self.vertex_count = 0
-        self.steps = 0  # calls x steps per call
-        self.photon_steps = 0  # interaction steps (free paths) of finished photons
-        self.vertices = 0
 
     # -- lanes --------------------------------------------------------------------------------
     def finish_and_refill(self) -> tuple[int, int]:
@@ -68,10 +89,10 @@ class _Runner:
         count): in the tail, where only the first chunk runs, the rest are EMPTY and cost little."""
         plan = self.plan
         launch = torch.tensor([plan.start, self.next_launch, plan.n_launch, plan.cfgs.n], dtype=torch.int64)
-        key, absorbed, truncated, n_free, steps = self.finish_fn(self.lanes_list, self.table_tensors, launch, plan.exit_bins.batch_starts)
+        key, absorbed, truncated, n_free, steps = self.kernels.finish(self.lanes, plan.cfgs.table, launch, plan.exit_bins.batch_starts)
         launched = min(int(n_free), plan.n_launch - self.next_launch)
         self.next_launch += launched
-        self.photon_steps += int(steps)
+        self.count.photon_steps += int(steps)
         if not int(steps):
             return 0, launched
         key = key.numpy()
@@ -97,14 +118,14 @@ class _Runner:
             return
         n = self.active * self.chunk
         idx = torch.nonzero(self.lanes.status[:n] == RUNNING).squeeze(1)
-        for t in self.lanes_list:
+        for t in self.lanes.tensors():
             t[: len(idx)] = t[idx]
         self.lanes.status[len(idx) : n] = EMPTY
         tail = self.plan.tail_chunk
         if tail is not None and self.chunk != tail and running <= tail:
             self.tail_lanes = running
             self.chunk = tail
-            self.chunks = [[t[: self.chunk] for t in self.lanes_list]]
+            self.chunks = [self.lanes.view(0, self.chunk)]
         self.active = max(1, math.ceil(running / self.chunk))
 
     def harvest(self, running: int) -> int:
@@ -139,14 +160,14 @@ class _Runner:
 
     def tally_exits(self, idx: torch.Tensor) -> None:
         """Tally the exit events of lanes idx: one entry per photon."""
-        for flat, _batch, g, s in self._blocks(idx, lambda b: self.exit_fn(b, self.lanes_list, self.plan.exit_bins)):
+        for flat, _batch, g, s in self._blocks(idx, lambda b: self.kernels.exits(b, self.lanes, self.plan.exit_bins)):
             self.photons.add_exits("exits", flat, g, s)
 
     def tally_hybrid(self, idx: torch.Tensor) -> None:
         """The hybrid estimator's entries of the photons finished in lanes idx: the first-vertex
         connection samples (single) and the exit after two or more scatterings (multiple)."""
         plan = self.plan
-        fn = lambda b: self.entries_fn(b, self.lanes_list, plan.exit_bins, plan.first_vertex, plan.entry_layout)  # noqa: E731
+        fn = lambda b: self.kernels.entries(b, self.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout)  # noqa: E731
         for flat2, g, s, key, weight in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1)):
             self.photons.add_photons("hybrid", flat2, g, s, key, weight)
 
@@ -159,51 +180,38 @@ class _Runner:
 
     # -- connection estimator -----------------------------------------------------------------
     def collect_vertices(self, vertex, offset: int) -> None:
-        coll, ux, uy, uz, w = vertex
-        local = torch.nonzero(coll).squeeze(1)
+        """Keep the vertices of the last step of the chunk at lane `offset` (`vertex` as the step
+        function returns it); connect them once a chunk of VERTEX_CHUNK is full."""
+        collided, ux_in, uy_in, uz_in, w_in = vertex
+        local = torch.nonzero(collided).squeeze(1)
         idx = local + offset
         if len(idx) == 0:
             return
         L = self.lanes
-        cols = [L.x[idx], L.y[idx], L.z[idx], ux[local], uy[local], uz[local], L.ux[idx], L.uy[idx], L.uz[idx], w[local],
-                L.cfg[idx], L.photon[idx], L.step[idx] - 1, (L.nscat[idx] >= 2).to(torch.int64)]  # fmt: skip
-        self.vertex_buf.append(cols)
-        self.vertex_count += len(idx)
-        self.vertices += len(idx)
-        if self.vertex_count >= VERTEX_CHUNK:
+        v = Vertices(
+            x=L.x[idx], y=L.y[idx], z=L.z[idx], ux=ux_in[local], uy=uy_in[local], uz=uz_in[local], vx=L.ux[idx], vy=L.uy[idx],
+            vz=L.uz[idx], w=w_in[local], cfg=L.cfg[idx], photon=L.photon[idx], draw=L.step[idx] - 1,
+            multiple=(L.nscat[idx] >= 2).to(torch.int64),
+        )  # fmt: skip
+        self.count.vertices += len(idx)
+        if self.vertex_buffer.add(v):
             self.flush_vertices(force=False)
 
     def flush_vertices(self, force: bool) -> None:
-        if not self.vertex_buf:
-            return
-        cols = [torch.cat(c) for c in zip(*self.vertex_buf)]
-        self.vertex_buf, self.vertex_count = [], 0
-        n = len(cols[0])
-        for a in range(0, n, VERTEX_CHUNK):
-            b = min(n, a + VERTEX_CHUNK)
-            if b - a < VERTEX_CHUNK and not force:
-                self.vertex_buf, self.vertex_count = [[c[a:] for c in cols]], n - a
-                return
-            self.connect_chunk([c[a:b] for c in cols])
+        """Connect the full chunks of vertices waiting, and with force the short last one too."""
+        for v in self.vertex_buffer.chunks(force):
+            self.connect_chunk(v)
 
-    def connect_chunk(self, cols: list[torch.Tensor]) -> None:
+    def connect_chunk(self, v: Vertices) -> None:
         """Tally both connection techniques for up to VERTEX_CHUNK vertices.
 
         A short chunk is padded to VERTEX_CHUNK (the compiled kernel has one static shape) with
         copies of its first vertex, whose results are cut off before tallying.
         """
-        n = len(cols[0])
-        if n < VERTEX_CHUNK:
-            cols = [torch.cat((c, c[:1].expand(VERTEX_CHUNK - n, *c.shape[1:]))) for c in cols]
-        px, py, pz, ux, uy, uz, vx, vy, vz, w, cfg, photon, draw, comp = cols
-        T = self.plan.cfgs.table
-        albedo, g, k0, k1 = T.albedo[cfg], T.g[cfg], T.k0[cfg], T.k1[cfg]
-        c_lo, c_hi = photon_words(photon)
-        (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.connect_fn(
-            px, py, pz, ux, uy, uz, vx, vy, vz, w, albedo, g, cfg, c_lo, c_hi, draw, k0, k1, self.plan.geo
-        )
-        cfg, comp, photon = cfg[:n], comp[:n], photon[:n]
-        batch = self.acc.batch_of(photon.numpy())
+        n = len(v)
+        (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.kernels.connect(v.pad(VERTEX_CHUNK), self.plan.cfgs.table, self.plan.geo)
+        cfg, comp = v.cfg, v.multiple
+        batch = self.acc.batch_of(v.photon.numpy())
         flat = self.flat_index(cfg[:, None], comp[:, None], spu[:n], dru[:n])
         nb = flat.shape[1]
         self.acc.add_hist("connections", np.repeat(batch, nb), flat.reshape(-1).numpy(),
@@ -226,11 +234,11 @@ class _Runner:
         while running > 0:
             running = finished = 0
             for k in range(self.active):
-                counts, vertex = self.step(self.chunks[k])
+                counts, vertex = self.kernels.step(self.chunks[k])
                 running, finished = running + int(counts[0]), finished + int(counts[1])
                 if plan.connect:
                     self.collect_vertices(vertex, k * self.chunk)
-            self.steps += plan.n_steps
+            self.count.steps += plan.n_steps
             if finished >= harvest_at or (running == 0 and finished > 0) or (finished and self.shrinkable(running)):
                 running = self.harvest(running)
         self.flush_vertices(force=True)
@@ -239,8 +247,8 @@ class _Runner:
         stats, counts = self.photons.finish(plan.stop - plan.start)
         batch_stats, batch_counts = self.acc.finish()
         info = {
-            "photons": plan.n_launch, "lanes": plan.n_lanes, "lane_steps": self.steps, "photon_steps": self.photon_steps,
-            "vertices": self.vertices, "tail_lanes": self.tail_lanes, "elapsed_s": time.perf_counter() - t0,
+            "photons": plan.n_launch, "lanes": plan.n_lanes, "lane_steps": self.count.steps, "photon_steps": self.count.photon_steps,
+            "vertices": self.count.vertices, "tail_lanes": self.tail_lanes, "elapsed_s": time.perf_counter() - t0,
             "engine": "compiled" if plan.compiled else "eager", "torch": torch.__version__,
         }  # fmt: skip
         return ShardTally(plan.shard_index, {**stats, **batch_stats}, {**counts, **batch_counts}, plan.stop - plan.start, info)

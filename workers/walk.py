@@ -14,7 +14,7 @@ photon's path does not depend on its lane, the lane count or the thread count.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from functools import lru_cache
 
 import torch
@@ -24,7 +24,7 @@ from .kernels import compile_kernel
 from .optics import fresnel_dielectric, sample_exponential, sample_hg, scatter_direction
 from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
 
-__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "walk_step", "step_function", "refill_lanes", "compile_enabled"]
+__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "ConfigTable", "STEP_FIELDS", "walk_step", "step_function", "refill_lanes", "compile_enabled"]
 
 # Lane status codes (int32: an int8 status made inductor convert masks element by element).
 RUNNING = 0  # photon in flight
@@ -90,7 +90,17 @@ class Lanes:
         )  # fmt: skip
 
     def tensors(self) -> list[torch.Tensor]:
+        """Every field, in declaration order (for moves that treat all lanes' fields alike)."""
         return [getattr(self, f.name) for f in fields(self)]
+
+    def view(self, start: int, stop: int) -> "Lanes":
+        """Lanes [start, stop) as views: writes through a view change these lanes."""
+        return Lanes(*(t[start:stop] for t in self.tensors()))
+
+    def copy_from(self, other: "Lanes", names: tuple[str, ...]) -> None:
+        """Write the fields `names` of other into these lanes, in place."""
+        for name in names:
+            getattr(self, name).copy_(getattr(other, name))
 
 
 @dataclass(frozen=True)
@@ -105,14 +115,12 @@ class ConfigTable:
     k0: torch.Tensor  # int32 bit patterns
     k1: torch.Tensor
 
-    def tensors(self) -> list[torch.Tensor]:
-        """In the order :func:`refill_lanes` expects."""
-        return [self.albedo, self.g, self.w0, self.ux0, self.uz0, self.k0, self.k1]
+
+# The fields of a lane that a step changes; the others are fixed while its photon is in flight.
+STEP_FIELDS = ("x", "y", "z", "ux", "uy", "uz", "w", "absorbed", "nscat", "step", "status")
 
 
-def walk_step(
-    x, y, z, ux, uy, uz, w, absorbed, nscat, step, c_lo, c_hi, status, albedo, g, k0, k1, *, p: WalkParams
-):  # fmt: skip
+def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor, ...]]:
     """Advance every RUNNING lane by one interaction; returns the new state and vertex data.
 
     One Philox block per step gives u_path (free path), u_dec (Fresnel / roulette / absorption
@@ -124,13 +132,16 @@ def walk_step(
       deposited and w *= albedo, then Russian roulette below w_min.  Analog mode: the photon is
       absorbed with probability 1 - albedo.  A surviving photon scatters into a new direction
       sampled from Henyey-Greenstein; after max_scatter scatterings it is truncated.
-    Returns the updated fields and (collided, ux_in, uy_in, uz_in, w_in): the vertices of this
-    step with the direction and weight arriving there, for the connection estimator.  The new
-    direction is computed on every collided lane (also one killed afterwards), so it doubles as
-    the phase-function sample of the connection's multiple importance sampling.
+    Returns the lanes after the step (new tensors for STEP_FIELDS, the others shared) and
+    (collided, ux_in, uy_in, uz_in, w_in): the vertices of this step with the direction and
+    weight arriving there, for the connection estimator.  The new direction is computed on every
+    collided lane (also one killed afterwards), so it doubles as the phase-function sample of the
+    connection's multiple importance sampling.
     """
+    x, y, z, ux, uy, uz, w = lanes.x, lanes.y, lanes.z, lanes.ux, lanes.uy, lanes.uz, lanes.w
+    status, step, albedo = lanes.status, lanes.step, lanes.albedo
     running = status == RUNNING
-    b0, b1, b2, b3 = philox4x32(c_lo, c_hi, step, torch.zeros_like(step) + PURPOSE_WALK, k0, k1)
+    b0, b1, b2, b3 = philox4x32(lanes.c_lo, lanes.c_hi, step, torch.zeros_like(step) + PURPOSE_WALK, lanes.k0, lanes.k1)
     s = sample_exponential(uniform_open(b0))
     u_dec = uniform_halfopen(b1)
     z_new = z + s * uz
@@ -145,20 +156,20 @@ def walk_step(
     # Collision: absorption.
     if p.analog:
         killed = coll & (u_dec >= albedo)
-        absorbed_new = absorbed + torch.where(killed, w, 0.0)
+        absorbed_new = lanes.absorbed + torch.where(killed, w, 0.0)
         w_new = w
     else:
-        absorbed_new = absorbed + torch.where(coll, w * (1.0 - albedo), 0.0)
+        absorbed_new = lanes.absorbed + torch.where(coll, w * (1.0 - albedo), 0.0)
         w_att = torch.where(coll, w * albedo, w)
         low = coll & (w_att < p.w_min)
         survive = u_dec < p.survival
         killed = low & ~survive
         w_new = torch.where(low, torch.where(survive, w_att * (1.0 / p.survival), 0.0), w_att)
-    nscat_new = nscat + coll.to(torch.int32)
+    nscat_new = lanes.nscat + coll.to(torch.int32)
     truncated = coll & ~killed & (nscat_new >= p.max_scatter)
 
     # Collision: new direction (Henyey-Greenstein), on every collided lane.
-    cos_t = sample_hg(uniform_halfopen(b2), g, p.hg_branch)
+    cos_t = sample_hg(uniform_halfopen(b2), lanes.g, p.hg_branch)
     phi = uniform_halfopen(b3) * (2.0 * torch.pi)
     nx, ny, nz = scatter_direction(ux, uy, uz, cos_t, phi)
 
@@ -174,34 +185,35 @@ def walk_step(
         torch.where(killed, ABSORBED, torch.where(truncated, TRUNCATED, status)),
     )
     step_new = step + running.to(torch.int32)
-    state = (x_new, y_new, z_new, ux_new, uy_new, uz_new, w_new, absorbed_new, nscat_new, step_new, status_new)
-    return state, (coll, ux, uy, uz, w)
+    after = replace(
+        lanes, x=x_new, y=y_new, z=z_new, ux=ux_new, uy=uy_new, uz=uz_new, w=w_new, absorbed=absorbed_new, nscat=nscat_new,
+        step=step_new, status=status_new,
+    )  # fmt: skip
+    return after, (coll, ux, uy, uz, w)
 
 
-def _step_inplace(lanes_tensors: list[torch.Tensor], p: WalkParams, n_steps: int, want_vertices: bool):
-    """Run n_steps steps writing the state back in place.
+def _step_inplace(lanes: Lanes, p: WalkParams, n_steps: int, want_vertices: bool):
+    """Run n_steps steps writing the state back into `lanes` in place.
 
     Returns (counts, vertex): counts = int64 [running, finished] lanes after the steps (finished =
     EXITED, ABSORBED or TRUNCATED, waiting for harvest); vertex = the last step's vertex data
-    (see :func:`walk_step`) if want_vertices, else None.
+    (collided, ux_in, uy_in, uz_in, w_in; see :func:`walk_step`) if want_vertices, else None.
+    A tuple, not a dataclass: see :func:`workers.kernels.compile_kernel` on results.
     """
-    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1, c_lo, c_hi) = lanes_tensors
     vertex = None
-    cur = (x, y, z, ux, uy, uz, w, absorbed, nscat, step, status)
+    cur = lanes
     for _ in range(n_steps):
-        cx, cy, cz, cux, cuy, cuz, cw, cab, cns, cst, cstat = cur
-        cur, vertex = walk_step(cx, cy, cz, cux, cuy, cuz, cw, cab, cns, cst, c_lo, c_hi, cstat, albedo, g, k0, k1, p=p)
+        cur, vertex = walk_step(cur, p=p)
     if want_vertices:
         # The arrival direction and weight are the old state, overwritten just below: copy them.
         vertex = tuple(v.clone() for v in vertex)
-    for dst, src in zip((x, y, z, ux, uy, uz, w, absorbed, nscat, step, status), cur):
-        dst.copy_(src)
-    new_status = cur[-1]
+    lanes.copy_from(cur, STEP_FIELDS)
+    new_status = cur.status
     counts = torch.stack(((new_status == RUNNING).sum(), ((new_status != RUNNING) & (new_status != EMPTY)).sum()))
     return counts, vertex
 
 
-def refill_lanes(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor], launch: torch.Tensor) -> None:
+def refill_lanes(lanes: Lanes, table: ConfigTable, launch: torch.Tensor) -> None:
     """Start new photons in every lane that is not RUNNING, in lane order, in place.
 
     launch = int64 [start photon, next launch number, launches in the shard, configurations]:
@@ -210,29 +222,28 @@ def refill_lanes(lanes_tensors: list[torch.Tensor], table: list[torch.Tensor], l
     become EMPTY.  A new photon sits at the origin travelling along the refracted incident
     direction of its configuration with weight 1 - R_spec.
     """
-    (x, y, z, ux, uy, uz, w, absorbed, nscat, step, photon, cfg, status, albedo, g, k0, k1, c_lo, c_hi) = lanes_tensors
-    t_albedo, t_g, t_w0, t_ux0, t_uz0, t_k0, t_k1 = table
+    L, T = lanes, table
     start, nxt, n_launch, n_cfg = launch[0], launch[1], launch[2], launch[3]
-    free = status != RUNNING
+    free = L.status != RUNNING
     q = nxt + torch.cumsum(free.to(torch.int64), 0) - 1
     new = free & (q < n_launch)
     q = torch.where(new, q, 0)  # keeps the gathers below in range on lanes that are not refilled
     c = q % n_cfg
-    zero = torch.zeros_like(x)
-    for dst, val in ((x, zero), (y, zero), (z, zero), (uy, zero), (absorbed, zero),
-                     (ux, t_ux0[c]), (uz, t_uz0[c]), (w, t_w0[c]), (albedo, t_albedo[c]), (g, t_g[c])):  # fmt: skip
+    zero = torch.zeros_like(L.x)
+    for dst, val in ((L.x, zero), (L.y, zero), (L.z, zero), (L.uy, zero), (L.absorbed, zero),
+                     (L.ux, T.ux0[c]), (L.uz, T.uz0[c]), (L.w, T.w0[c]), (L.albedo, T.albedo[c]), (L.g, T.g[c])):  # fmt: skip
         dst.copy_(torch.where(new, val, dst))
-    nscat.copy_(torch.where(new, 0, nscat))
-    step.copy_(torch.where(new, 0, step))
+    L.nscat.copy_(torch.where(new, 0, L.nscat))
+    L.step.copy_(torch.where(new, 0, L.step))
     pid = start + q // n_cfg
-    photon.copy_(torch.where(new, pid, photon))
+    L.photon.copy_(torch.where(new, pid, L.photon))
     lo, hi = photon_words(pid)
-    c_lo.copy_(torch.where(new, lo, c_lo))
-    c_hi.copy_(torch.where(new, hi, c_hi))
-    cfg.copy_(torch.where(new, c, cfg))
-    k0.copy_(torch.where(new, t_k0[c], k0))
-    k1.copy_(torch.where(new, t_k1[c], k1))
-    status.copy_(torch.where(new, RUNNING, torch.where(free, EMPTY, status)))
+    L.c_lo.copy_(torch.where(new, lo, L.c_lo))
+    L.c_hi.copy_(torch.where(new, hi, L.c_hi))
+    L.cfg.copy_(torch.where(new, c, L.cfg))
+    L.k0.copy_(torch.where(new, T.k0[c], L.k0))
+    L.k1.copy_(torch.where(new, T.k1[c], L.k1))
+    L.status.copy_(torch.where(new, RUNNING, torch.where(free, EMPTY, L.status)))
 
 
 def compile_enabled() -> bool:
@@ -248,7 +259,7 @@ def compile_enabled() -> bool:
 def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bool):
     """The (possibly compiled) in-place stepping function for these constants."""
 
-    def fn(lanes_tensors: list[torch.Tensor]):
-        return _step_inplace(lanes_tensors, p, n_steps, want_vertices)
+    def fn(lanes: Lanes):
+        return _step_inplace(lanes, p, n_steps, want_vertices)
 
     return compile_kernel(fn, "walk_step", (p, n_steps, want_vertices)) if compiled else fn

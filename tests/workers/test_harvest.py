@@ -20,7 +20,7 @@ from tests.reference.binning import searched
 from workers.binning import BinLayout, outgoing_azimuth, wrap_angle
 from workers.harvest import ExitBins, batch_index, count_le, exit_bins
 from workers.optics import refracted_cos
-from workers.walk import EMPTY, EXITED
+from workers.walk import EMPTY, EXITED, Lanes
 
 TWO_PI = 2.0 * math.pi
 
@@ -109,9 +109,16 @@ def _reference(lanes: dict, layout: BinLayout, channel: np.ndarray, bins: ExitBi
     return flat, w, w / cos_o
 
 
+def _as_lanes(lanes: dict) -> Lanes:
+    """The fields of `lanes` in a Lanes of their length (the others zero)."""
+    full = Lanes.empty(len(lanes["x"]))
+    for name, value in lanes.items():
+        getattr(full, name).copy_(value)
+    return full
+
+
 def _exit_bins(lanes: dict, idx: torch.Tensor, bins: ExitBins):
-    args = [lanes[k] for k in ("x", "y", "ux", "uy", "uz", "w", "nscat", "photon", "cfg")]
-    return exit_bins(idx, *args, bins)
+    return exit_bins(idx, _as_lanes(lanes), bins)
 
 
 def test_exit_bins_match_the_reference_lookups():
@@ -144,14 +151,12 @@ def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
     from workers.bench import _spec
     from workers.harvest import finish_and_refill
     from workers.shard import build_configs
-    from workers.walk import RUNNING, TRUNCATED, Lanes
+    from workers.walk import RUNNING, TRUNCATED
 
     bins, _, _ = _bins()
     n, n_cfg = 4000, 3
     lanes = _lanes(n, bins, seed=17)
-    full = Lanes.empty(n)
-    for name, value in lanes.items():
-        getattr(full, name).copy_(value)
+    full = _as_lanes(lanes)
     before = {name: value.clone() for name, value in lanes.items()}
     st = before["status"]
     done = (st != RUNNING) & (st != EMPTY)
@@ -159,7 +164,7 @@ def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
     table = build_configs(_spec("M2", "exits", 1000).model_copy(update={"incidence_deg": [0.0, 30.0, 60.0]})).table
     start, nxt, left = 5000, 7, int(free.sum()) - 100  # the last 100 free lanes get nothing
     launch = torch.tensor([start, nxt, nxt + left, n_cfg])
-    key, absorbed, truncated, n_free, steps = finish_and_refill(full.tensors(), table.tensors(), launch, bins.batch_starts)
+    key, absorbed, truncated, n_free, steps = finish_and_refill(full, table, launch, bins.batch_starts)
 
     batch = torch.from_numpy(np.searchsorted(np.array(STARTS), before["photon"].numpy(), side="right") - 1)
     assert torch.equal(key, torch.where(done, batch * n_cfg + before["cfg"], len(STARTS) * n_cfg))
@@ -198,14 +203,10 @@ print(json.dumps(same + [float(((compiled[3] - eager[3]) / eager[3]).abs().max()
 
 
 def _block(lanes: dict, idx: torch.Tensor, bins: ExitBins, compiled: bool):
-    """The shard runner's exit lookup on a block of lanes in Lanes field order."""
+    """The shard runner's exit lookup on a block of lanes."""
     from workers.harvest import exit_function
-    from workers.walk import Lanes
 
-    full = Lanes.empty(len(lanes["x"]))
-    for name, value in lanes.items():
-        getattr(full, name).copy_(value)
-    return exit_function(compiled)(idx, full.tensors(), bins)
+    return exit_function(compiled)(idx, _as_lanes(lanes), bins)
 
 
 @pytest.mark.slow

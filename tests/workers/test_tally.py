@@ -46,11 +46,11 @@ def test_hybrid_kernel_squares_per_photon(walk_spec):
         runner.finish_and_refill()
         for _ in range(6):
             for k in range(runner.active):
-                runner.step(runner.chunks[k])
+                runner.kernels.step(runner.chunks[k])
         st = runner.lanes.status
         idx = torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1)
         assert len(idx) > 50
-        flat2, g, s, key, weight = (v.numpy() for v in photon_entries(idx, runner.lanes_list, plan.exit_bins, plan.first_vertex, plan.entry_layout))
+        flat2, g, s, key, weight = (v.numpy() for v in photon_entries(idx, runner.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout))
     size = int(plan.entry_layout.square_offsets[-1]) + 3 * plan.cfgs.n
     values = np.stack([g, s, g, g, g, s, g, g])
     got = np.bincount(key.reshape(-1), weights=weight.reshape(-1), minlength=size)
