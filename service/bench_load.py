@@ -255,7 +255,9 @@ def run_load(db_url: str | None = None, *, jobs: int = 1000, reads: int = 10000,
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.bench_load", description=__doc__.split("\n\n")[0])
-    p.add_argument("--db", default=None, help="job store URL (default: a temporary SQLite file)")
+    p.add_argument("--db", default=None, help="job store URL (default: a temporary SQLite file); with a "
+                   "PostgreSQL URL, a fresh database is made on that server and dropped afterwards (the "
+                   "checks count every row, and earlier runs' specs would be deduplicated)")
     p.add_argument("--jobs", type=int, default=1000)
     p.add_argument("--reads", type=int, default=10000)
     p.add_argument("--clients", type=int, default=16, help="concurrent client tasks")
@@ -264,8 +266,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--worker-nice", type=int, default=10,
                    help="niceness of the workers (default 10: on the API's host, requests come first)")
     args = p.parse_args(argv)
-    report = run_load(args.db, jobs=args.jobs, reads=args.reads, clients=args.clients, workers=args.workers,
-                      drain_seconds=args.drain_seconds, worker_nice=args.worker_nice)
+    fresh = None
+    if args.db and args.db.startswith("postgresql"):
+        from service.pooler import database_url, fresh_database
+
+        fresh = fresh_database(args.db, "bench_load")
+    try:
+        report = run_load(database_url(args.db, fresh) if fresh else args.db, jobs=args.jobs, reads=args.reads,
+                          clients=args.clients, workers=args.workers, drain_seconds=args.drain_seconds,
+                          worker_nice=args.worker_nice)
+    finally:
+        if fresh:
+            from service.pooler import drop_database
+
+            drop_database(args.db, fresh)
     s = report.summary()
     print(json.dumps(s, indent=1))
     return 0 if s["errors"] == 0 and s["checks"].get("ok") else 1
