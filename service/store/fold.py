@@ -94,7 +94,7 @@ class FoldMixin(StoreBase):
                         shards_skipped=jobs.c.shards_skipped + cancelled, updated_at=now)
                 .returning(jobs.c.shards, jobs.c.shards_done, jobs.c.shards_skipped)
             ).one()
-            self._wake_merge(conn, lease.job_id, int(folded), job.shards, job.shards_done + job.shards_skipped)
+            self._wake_merge(conn, lease.job_id, int(folded), job.shards, job.shards_done, job.shards_skipped)
 
     def medium_progress(self, job_id: str, shards_per_medium: int, *, offset: int = 0,
                         limit: int = 1000) -> list[MediumProgress]:

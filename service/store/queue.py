@@ -15,7 +15,7 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
 from service.store.base import StoreBase
-from service.store.errors import LeaseLost
+from service.store.errors import JobNotFound, LeaseLost
 from service.store.records import Lease, StoredFile
 from service.store.retry import decide_retry
 from service.store.states import ACTIVE_JOB_STATES, JobState, TaskKind, TaskState
@@ -50,12 +50,12 @@ class QueueMixin(StoreBase):
             self.reap_expired()
         now = self._now()
         with self._tx() as conn:
-            # Merge tasks first (few: one per live job, ix_tasks_merge_live), so that the fold keeps
-            # up with the shards as they arrive; then shards in fair order.
-            row = conn.execute(self._claim_statement(now, worker_id, lease_seconds, TaskKind.MERGE)).first()
-            if row is None:
-                row = conn.execute(self._claim_statement(now, worker_id, lease_seconds, None)).first()
-            if row is not None:
+            # One statement: merge tasks first (few: one per live job, ix_tasks_merge_live), so
+            # that the fold keeps up with the shards as they arrive; then shards in fair order.
+            # The job's state and spec come back with the task (no second round trip per claim:
+            # under a transaction pooler a server connection is held for the whole transaction).
+            row = conn.execute(self._claim_statement(now, worker_id, lease_seconds)).first()
+            if row is not None and row.job_state == JobState.QUEUED:
                 # Lock order elsewhere is job row, then task rows; here the task is already locked,
                 # so skip a locked job row instead of waiting (no deadlock with cancel). Whoever
                 # holds it is another first claim (it sets running) or a cancel.
@@ -70,19 +70,16 @@ class QueueMixin(StoreBase):
                     .where(jobs.c.id == first_claim)
                     .values(state=JobState.RUNNING, started_at=now, updated_at=now)
                 )
-                spec_json = conn.execute(
-                    sa.select(jobs.c.spec_json).where(jobs.c.id == row.job_id)
-                ).scalar_one()
         if row is None:
             return None  # the reaper runs every reap_interval_s above, not on every empty claim
         return Lease(
             task_id=row.id, token=row.lease_token, job_id=row.job_id, kind=TaskKind(row.kind),
             shard_index=row.shard_index, attempts=row.attempts, max_attempts=row.max_attempts,
-            lease_expires_at=row.lease_expires_at, spec_json=spec_json, owner=worker_id,
+            lease_expires_at=row.lease_expires_at, spec_json=row.spec_json, owner=worker_id,
         )
 
-    def _claim_statement(self, now, worker_id: str, lease_seconds: float, kind: TaskKind | None):
-        """The atomic claim of the first claimable task (of ``kind``, if given): see :meth:`claim`."""
+    def _candidate(self, now, kind: TaskKind | None):
+        """The first claimable task (of ``kind``, if given), locked, skipping locked rows."""
         expired = sa.and_(
             tasks.c.state == TaskState.LEASED,
             tasks.c.lease_expires_at < now,
@@ -95,7 +92,7 @@ class QueueMixin(StoreBase):
         ]
         if kind is not None:
             where.append(tasks.c.kind == kind)
-        candidate = (
+        return (
             sa.select(tasks.c.id)
             .join(jobs, jobs.c.id == tasks.c.job_id)
             .where(*where)
@@ -104,9 +101,22 @@ class QueueMixin(StoreBase):
             .with_for_update(skip_locked=True, of=tasks)
             .scalar_subquery()
         )
+
+    def _claim_statement(self, now, worker_id: str, lease_seconds: float):
+        """The atomic claim (see :meth:`claim`): ``UPDATE tasks ... WHERE id = coalesce(first
+        claimable merge, first claimable task) RETURNING`` the task, its job's state and spec.
+
+        ``coalesce`` evaluates its second argument only when the first is null (PostgreSQL runs
+        each uncorrelated subquery as an init plan when first needed, so the shard candidate is
+        neither looked for nor locked when a merge is claimable; SQLite holds the write lock).
+        """
+        # SQLite's RETURNING renders columns unqualified ("WHERE id = job_id"): in the subquery
+        # "id" is the inner (job) table's and "job_id", a column jobs lacks, the updated task's.
+        owner = jobs.alias("owner")
+        job = lambda col: sa.select(owner.c[col]).where(owner.c.id == tasks.c.job_id).scalar_subquery()  # noqa: E731
         return (
             sa.update(tasks)
-            .where(tasks.c.id == candidate)
+            .where(tasks.c.id == sa.func.coalesce(self._candidate(now, TaskKind.MERGE), self._candidate(now, None)))
             .values(
                 expirations=tasks.c.expirations
                 + sa.case((tasks.c.state == TaskState.LEASED, 1), else_=0),
@@ -123,6 +133,7 @@ class QueueMixin(StoreBase):
             .returning(
                 tasks.c.id, tasks.c.lease_token, tasks.c.job_id, tasks.c.kind, tasks.c.shard_index,
                 tasks.c.attempts, tasks.c.max_attempts, tasks.c.lease_expires_at,
+                job("state").label("job_state"), job("spec_json").label("spec_json"),
             )
         )
 
@@ -170,7 +181,15 @@ class QueueMixin(StoreBase):
             raise ValueError(f"complete_shard needs a shard lease; received a {lease.kind} lease")
         now = self._now()
         with self._tx() as conn:
-            self._lock_job(conn, lease.job_id)
+            # The counter's UPDATE takes the job row's lock first (the lock order of every write:
+            # job row, then its tasks), in the same round trip; a refused fence rolls it back.
+            job = conn.execute(
+                sa.update(jobs).where(jobs.c.id == lease.job_id)
+                .values(shards_done=jobs.c.shards_done + 1, updated_at=now)
+                .returning(jobs.c.shards, jobs.c.shards_done, jobs.c.shards_skipped, jobs.c.folded)
+            ).first()
+            if job is None:
+                raise JobNotFound(lease.job_id)
             self._finish(conn, lease, photons=int(photons), elapsed_s=float(elapsed_s))
             conn.execute(
                 sa.insert(shard_results).values(
@@ -178,18 +197,18 @@ class QueueMixin(StoreBase):
                     sha256=result.sha256, created_at=now,
                 )
             )
-            job = conn.execute(
-                sa.update(jobs).where(jobs.c.id == lease.job_id)
-                .values(shards_done=jobs.c.shards_done + 1, updated_at=now)
-                .returning(jobs.c.shards, jobs.c.shards_done, jobs.c.shards_skipped, jobs.c.folded)
-            ).one()
-            self._wake_merge(conn, lease.job_id, job.folded, job.shards, job.shards_done + job.shards_skipped)
+            self._wake_merge(conn, lease.job_id, job.folded, job.shards, job.shards_done, job.shards_skipped)
 
-    def _wake_merge(self, conn: Connection, job_id: str, folded: int, total: int, resolved: int) -> None:
+    def _wake_merge(self, conn: Connection, job_id: str, folded: int, total: int, done: int, skipped: int) -> None:
         """Queue the waiting merge task if the fold can advance: the ``fold_batch`` tasks from
         ``folded`` on are done (indexed range count, O(fold_batch)), or every task is resolved;
-        set the job ``merging`` once every task is done or skipped."""
-        if resolved >= total:
+        set the job ``merging`` once every task is done or skipped.
+
+        The count is skipped when the job's counters already rule it out: the tasks below
+        ``folded`` are resolved, so at most ``done + skipped - folded`` done tasks lie at or above
+        it; fewer than the batch cannot fill it (most commits of a large job: one round trip less).
+        """
+        if done + skipped >= total:
             ready = True
             conn.execute(
                 sa.update(jobs).where(jobs.c.id == job_id, jobs.c.state == JobState.RUNNING)
@@ -197,7 +216,7 @@ class QueueMixin(StoreBase):
             )
         else:
             n = min(self.fold_batch, total - folded)
-            ready = n > 0 and conn.execute(
+            ready = n > 0 and done + skipped - folded >= n and conn.execute(
                 sa.select(sa.func.count()).where(
                     tasks.c.job_id == job_id, tasks.c.shard_index >= folded, tasks.c.shard_index < folded + n,
                     tasks.c.kind == TaskKind.SHARD, tasks.c.state == TaskState.DONE,
@@ -318,6 +337,16 @@ class QueueMixin(StoreBase):
                     jobs.c.state.in_(list(ACTIVE_JOB_STATES)),
                     tasks.c.state.in_([TaskState.QUEUED, TaskState.LEASED, TaskState.WAITING]))
             ).scalar_one())
+
+    def has_pending_tasks(self) -> bool:
+        """``pending_tasks() > 0`` without counting: stops at the first such task (the idle poll
+        of every ``--once`` worker of a fleet runs it after each empty claim)."""
+        with self._read() as conn:
+            return conn.execute(sa.select(
+                sa.select(tasks.c.id).join(jobs, jobs.c.id == tasks.c.job_id).where(
+                    jobs.c.state.in_(list(ACTIVE_JOB_STATES)),
+                    tasks.c.state.in_([TaskState.QUEUED, TaskState.LEASED, TaskState.WAITING])).exists()
+            )).scalar_one()
 
     def release(self, lease: Lease) -> bool:
         """Give a lease back unfinished (worker stopping): queued again, not counted as an attempt."""

@@ -86,3 +86,34 @@ def test_the_probe_sees_a_count_over_all_tasks(tmp_path, fake_spec):
         costs[n] = rec.steps
     assert costs[LARGE] - costs[SMALL] >= LARGE - SMALL, costs
     store.dispose()
+
+
+def test_claims_and_commits_take_few_round_trips(db_url, fake_spec):
+    """Under a transaction pooler a server connection is held for a whole transaction, client gaps
+    included, so statements per claim and commit bound a fleet's throughput (BENCHMARKS.md, fleet):
+    a claim is one statement (two on a job's first claim, which also marks the job running); a
+    commit is three until the fold's next batch may be complete (then the batch count, and the
+    merge's wake-up once it is)."""
+    store = JobStore(db_url, fold_batch=4)
+    store.reap_interval_s = 1e9
+    store.reap_expired()  # not during the probe
+    rec = Recorder(store)
+    job = store.submit(fake_spec(name="trips", shards=4))
+    per_claim, per_commit = [], []
+    for _ in range(4):
+        rec.on, rec.statements = True, []
+        lease = store.claim("w", 600)
+        per_claim.append(rec.statements)
+        rec.statements = []
+        store.complete_shard(lease, StoredFile(f".jobs/{job.id}/s{lease.shard_index}", 1, "0" * 64),
+                             photons=1, elapsed_s=0.0)
+        per_commit.append(rec.statements)
+        rec.on = False
+    per_claim, per_commit = ([[s for s in x if not s.startswith("BEGIN")] for x in y] for y in (per_claim, per_commit))
+    assert [len(s) for s in per_claim] == [2, 1, 1, 1], per_claim[:2]
+    assert per_claim[0][0].startswith("UPDATE tasks") and per_claim[0][1].startswith("UPDATE jobs")
+    # The last commit resolves every task: the job turns merging and the merge is queued.
+    assert [len(s) for s in per_commit] == [3, 3, 3, 5], per_commit
+    merge = store.claim("w", 600)
+    assert merge.kind == "merge" and merge.spec_json == store.get_job(job.id).spec_json
+    store.dispose()
