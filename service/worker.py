@@ -36,6 +36,9 @@ __all__ = ["Worker", "JsonFormatter", "add_parser", "main", "configure_logging"]
 
 log = logging.getLogger("bssrdf.worker")
 
+IDLE_BACKOFF_CAP = 8.0
+"""Default ``max_poll_seconds`` as a multiple of ``poll_seconds``."""
+
 
 class _Abandon(Exception):
     """Raised from the progress callback to stop a shard early (lease lost, or stopping)."""
@@ -95,7 +98,8 @@ class Worker:
     def __init__(
         self, store: JobStore, storage: DatasetStorage, *, worker_id: str | None = None, lease_seconds: float = 60.0,
         heartbeat_seconds: float | None = None, once: bool = False, max_tasks: int | None = None,
-        poll_seconds: float = 1.0, stall_seconds: float | None = 300.0, keep_shard_files: bool = False,
+        poll_seconds: float = 1.0, max_poll_seconds: float | None = None, stall_seconds: float | None = 300.0,
+        keep_shard_files: bool = False,
     ) -> None:
         self.store, self.storage = store, storage
         self.keep_shard_files = keep_shard_files
@@ -103,6 +107,13 @@ class Worker:
         self.lease_seconds = lease_seconds
         self.heartbeat_seconds = heartbeat_seconds or lease_seconds / 4
         self.once, self.max_tasks, self.poll_seconds = once, max_tasks, poll_seconds
+        # An idle worker's wait doubles from poll_seconds up to this: an idle fleet of 1,000
+        # polls ~125 times a second at the 8 s default, not 1,000 (deploy/README.md, capacity).
+        self.max_poll_seconds = IDLE_BACKOFF_CAP * poll_seconds if max_poll_seconds is None else max_poll_seconds
+        if not poll_seconds > 0:
+            raise ValueError(f"poll_seconds must be > 0; received {poll_seconds}")
+        if not self.max_poll_seconds >= poll_seconds:
+            raise ValueError(f"max_poll_seconds must be >= poll_seconds ({poll_seconds}); received {max_poll_seconds}")
         self.stall_seconds = stall_seconds
         self.stopping = threading.Event()
         self.processed = 0
@@ -124,7 +135,7 @@ class Worker:
 
     def loop(self) -> int:
         """Claim and process until stopped, ``max_tasks`` reached, or (``once``) the queue is empty."""
-        db_errors = 0
+        db_errors = idle = 0
         while not self.stopping.is_set():
             if self.max_tasks is not None and self.processed >= self.max_tasks:
                 break
@@ -141,14 +152,22 @@ class Worker:
             if lease is None:
                 # --once: leave only when no live job has a task that can still become claimable
                 # (a merge waiting for running shards, a retry backing off, a lease to expire).
-                if self.once and self.store.pending_tasks() == 0:
+                if self.once and not self.store.has_pending_tasks():
                     break
-                # Jitter: a fleet started together does not poll in lock step.
-                self.stopping.wait(self.poll_seconds * random.uniform(0.5, 1.5))
+                self.stopping.wait(self.idle_wait(idle))
+                idle += 1
                 continue
+            idle = 0
             self.process(lease)
             self.processed += 1
         return self.processed
+
+    def idle_wait(self, empty_claims: int) -> float:
+        """Seconds to wait after ``empty_claims + 1`` empty claims in a row: ``poll_seconds``
+        doubled per empty claim up to ``max_poll_seconds``, times a random 0.5-1.5 (jitter: a
+        fleet started together does not poll in lock step). A claimed task resets the count."""
+        base = min(self.max_poll_seconds, self.poll_seconds * 2.0 ** min(empty_claims, 30))
+        return base * random.uniform(0.5, 1.5)
 
     def claim(self) -> Lease | None:
         """One lease or None."""
@@ -293,16 +312,35 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lease-seconds", type=float, default=None, metavar="S", help="lease length (default 60)")
     p.add_argument("--heartbeat-seconds", type=float, default=None, metavar="S", help="default: lease / 4")
     p.add_argument("--poll-seconds", type=float, default=1.0, metavar="S",
-                   help="idle wait between claims (x a random 0.5-1.5, so a fleet does not poll in step)")
+                   help="idle wait after an empty claim, doubled per empty claim in a row up to "
+                   "--max-poll-seconds (x a random 0.5-1.5, so a fleet does not poll in step)")
+    p.add_argument("--max-poll-seconds", type=float, default=None, metavar="S",
+                   help=f"longest idle wait (default {IDLE_BACKOFF_CAP:g} x --poll-seconds)")
     p.add_argument("--stall-seconds", type=float, default=None, metavar="S",
                    help="a shard that reports no progress for S seconds loses its lease (default: "
                    "BSSRDF_STALL_SECONDS, 300; the clock starts at its first report, after any compile)")
     p.add_argument("--worker-id", default=None, help="name in leases and logs (default host:pid:random)")
 
 
+def _argument_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the numeric options (each must be positive; the idle backoff's cap at
+    least the first wait), or None."""
+    for name in ("lease_seconds", "heartbeat_seconds", "poll_seconds", "max_poll_seconds", "stall_seconds", "max_tasks"):
+        value = getattr(args, name, None)
+        if value is not None and not value > 0:
+            return f"--{name.replace('_', '-')} must be > 0; received {value}"
+    if args.max_poll_seconds is not None and args.max_poll_seconds < args.poll_seconds:
+        return f"--max-poll-seconds must be >= --poll-seconds ({args.poll_seconds:g}); received {args.max_poll_seconds:g}"
+    return None
+
+
 def main(args: argparse.Namespace) -> int:
     """Run a worker with parsed arguments; returns the exit status."""
     settings = settings_or_exit()
+    problem = _argument_problem(args)
+    if problem:
+        print(f"bssrdf worker: {problem}", file=sys.stderr)
+        return 2
     configure_logging()
     # One worker process per core, one torch thread each: shards are independent, so processes
     # scale without per-step synchronisation, and the walk runs exactly as in `bssrdf simulate`.
@@ -316,6 +354,7 @@ def main(args: argparse.Namespace) -> int:
     worker = Worker(
         store, storage, worker_id=args.worker_id, lease_seconds=lease_seconds, heartbeat_seconds=heartbeat,
         once=args.once, max_tasks=args.max_tasks, poll_seconds=args.poll_seconds,
+        max_poll_seconds=args.max_poll_seconds,
         stall_seconds=args.stall_seconds or settings.stall_seconds,
         keep_shard_files=settings.keep_shard_files,
     )

@@ -136,16 +136,22 @@ def test_idle_claims_do_not_run_the_reaper_each_time(store, monkeypatch):
 
 
 def test_pending_tasks_counts_what_can_still_become_claimable(store):
+    # has_pending_tasks (the --once poll) agrees with the count at every step.
     assert store.pending_tasks() == 0
+    assert store.has_pending_tasks() is False
     job = store.submit(FakeSpec(shards=2))
     assert store.pending_tasks() == 3  # two shards and the waiting merge
+    assert store.has_pending_tasks() is True
     a, b = store.claim("w", 30), store.claim("w", 30)
     store.complete_shard(a, stored(b"x"), photons=1, elapsed_s=0.0)
     assert store.pending_tasks() == 2  # one running shard, the merge still waits for it
+    assert store.has_pending_tasks() is True
     assert store.fail_task(b, "boom")  # retried after a backoff: still pending
     assert store.pending_tasks() == 2
+    assert store.has_pending_tasks() is True
     store.cancel(job.id)
     assert store.pending_tasks() == 0
+    assert store.has_pending_tasks() is False
 
 
 def test_cancel_stops_claims_and_refuses_late_commits(store):
