@@ -6,8 +6,8 @@ PostgreSQL, through pgbouncer (deploy/pgbouncer/pgbouncer.ini) or a bounded conn
 
 Real: the worker's loop (``service.worker.Worker.loop`` and ``process``: claim, a heartbeat
 thread per task, the shard's file written to the job's staging area in dataset storage and its
-URI, size and sha256 committed by ``complete_shard``, ``fail_task`` on errors, ``pending_tasks``
-and the jittered idle poll of ``--once``), one ``JobStore`` (one engine, one connection pool of
+URI, size and sha256 committed by ``complete_shard``, ``fail_task`` on errors, ``has_pending_tasks``
+and the jittered, backed-off idle poll of ``--once``), one ``JobStore`` (one engine, one connection pool of
 2 + 4) per simulated worker as one per worker process, the job store's schema and migrations,
 pgbouncer 1.x from Debian with the deploy file's settings, PostgreSQL. Simulated: the walk (a
 shard is instant; its payload is random bytes of the size the spec's tally has,
@@ -150,7 +150,7 @@ class FleetWorker(Worker):
 
 
 def _simulate(url: str, storage_uri: str, ids: range, payload: bytes, pool: tuple[int, int] | None,
-              ready, deadline_s: float, out) -> None:
+              ready, deadline_s: float, out, max_poll_seconds: float | None = None) -> None:
     """One process of simulated workers (threads); puts its _Stats' figures on ``out``."""
     stats = _Stats()
     storage = DatasetStorage(storage_uri)
@@ -164,7 +164,8 @@ def _simulate(url: str, storage_uri: str, ids: range, payload: bytes, pool: tupl
     stores = [shared or make_store() for _ in ids]
     workers = []
     for i, store in zip(ids, stores):
-        w = FleetWorker(store, storage, worker_id=f"fleet-{i}", lease_seconds=60.0, once=True, poll_seconds=1.0)
+        w = FleetWorker(store, storage, worker_id=f"fleet-{i}", lease_seconds=60.0, once=True, poll_seconds=1.0,
+                        max_poll_seconds=max_poll_seconds)
         w.payload = payload
         workers.append(w)
     for s in set(stores):
@@ -225,7 +226,8 @@ def _cpu(pids) -> dict[int, float]:
 
 
 def run_fleet(pg_url: str, *, workers: int = 1000, jobs: int = 40, shards: int = 150, processes: int = 2,
-              pooler: str = "pgbouncer", budget: int = 20, deadline_s: float = 600.0) -> dict[str, object]:
+              pooler: str = "pgbouncer", budget: int = 20, deadline_s: float = 600.0,
+              max_poll_seconds: float | None = None) -> dict[str, object]:
     """Create a database and (``pooler="pgbouncer"``) a pgbouncer, submit ``jobs`` x ``shards``,
     run the simulated fleet, check, clean up; the figures (module docstring)."""
     from schema.sizes import estimate_sizes
@@ -259,7 +261,8 @@ def run_fleet(pg_url: str, *, workers: int = 1000, jobs: int = 40, shards: int =
         pool = None if pooler == "pgbouncer" else (max(1, budget // processes), 0)
         store.dispose()
         t_connect = time.monotonic()
-        procs = [ctx.Process(target=_simulate, args=(url, storage_uri, ids, payload, pool, ready, deadline_s, out))
+        procs = [ctx.Process(target=_simulate, args=(url, storage_uri, ids, payload, pool, ready, deadline_s, out,
+                                                          max_poll_seconds))
                  for ids in per]
         for p in procs:
             p.daemon = True  # they die with this process, whatever happens to it
@@ -295,7 +298,8 @@ def run_fleet(pg_url: str, *, workers: int = 1000, jobs: int = 40, shards: int =
                "pgbouncer": round(cpu1.get(bouncer_pid, 0) - cpu0.get(bouncer_pid, 0), 2) if bouncer else None,
                "postgres_backends": round(sum(v - cpu0.get(pid, 0.0) for pid, v in cpu1.items() if pid != bouncer_pid), 2)}
         report = _report(results, workers=workers, jobs=jobs, shards=shards, processes=processes, pooler=pooler,
-                         budget=budget if bouncer is None else None, payload=len(payload), connect_s=connect_s,
+                         budget=budget if bouncer is None else None, max_poll_seconds=max_poll_seconds,
+                         payload=len(payload), connect_s=connect_s,
                          wall_s=wall_s, cpu=cpu, peak=peak if bouncer else None,
                          bouncer=bouncer and {"version": ".".join(map(str, bouncer.version)), "dropped": bouncer.dropped,
                                               **{k: bouncer.settings[k] for k in ("pool_mode", "default_pool_size",
@@ -389,11 +393,14 @@ def main(argv: list[str] | None = None) -> int:
                    "budget (direct, the workers of a process share --budget / processes connections)")
     p.add_argument("--budget", type=int, default=20, help="connections to PostgreSQL in all, with --pooler budget")
     p.add_argument("--deadline-s", type=float, default=600.0)
+    p.add_argument("--max-poll-seconds", type=float, default=None,
+                   help="the workers' longest idle wait (default: the worker's, 8 x the 1 s poll; 1 = no backoff)")
     args = p.parse_args(argv)
     if not args.pg:
         p.error("no PostgreSQL URL: pass --pg or set BSSRDF_TEST_POSTGRES_URL")
     report = run_fleet(args.pg, workers=args.workers, jobs=args.jobs, shards=args.shards, processes=args.processes,
-                       pooler=args.pooler, budget=args.budget, deadline_s=args.deadline_s)
+                       pooler=args.pooler, budget=args.budget, deadline_s=args.deadline_s,
+                       max_poll_seconds=args.max_poll_seconds)
     print(json.dumps(report, indent=1))
     return 0 if report["checks"]["ok"] else 1
 
