@@ -12,7 +12,7 @@ and the jittered, backed-off idle poll of ``--once``), one ``JobStore`` (one eng
 pgbouncer 1.x from Debian with the deploy file's settings, PostgreSQL. Simulated: the walk (a
 shard is instant; its payload is random bytes of the size the spec's tally has,
 ``schema.sizes``) and the fold's arithmetic: a merge round reads, sha256-checked, every done
-shard file in task order as the real fold does (``fold_position``, ``shard_result``), writes a
+shard file in task order as the real fold does (``fold_position``, ``ResultWindow``), writes a
 fold file and commits ``advance_fold``; the last round stages a metadata file and publishes
 with ``complete_merge`` through ``DatasetStorage``, then removes the job's files. Workers are
 threads (``--processes`` processes of them: one Python process is one core).
@@ -38,7 +38,7 @@ import time
 from collections import Counter
 
 from service.bench_load import cpu_seconds, percentile
-from service.datasets import DatasetStorage, JobFiles
+from service.datasets import DatasetStorage, JobFiles, ResultWindow
 from service.store import JobStore, LeaseLost, TaskKind
 from service.worker import Worker
 
@@ -123,8 +123,9 @@ class FleetWorker(Worker):
         store, files = self.store, JobFiles(self.storage, lease.job_id)
         pos = store.fold_position(lease.job_id)
         folded = pos.folded
+        results = ResultWindow(store, lease.job_id)
         while folded < pos.tasks:
-            stored = store.shard_result(lease.job_id, folded)
+            stored = results.get(folded)
             if stored is None:
                 break
             files.read(stored, f"task {folded}")  # read once and sha256-checked, as the fold does

@@ -12,7 +12,7 @@ parts), :mod:`.publish` (the merge task run by workers: an incremental fold), :m
 
 from service.datasets.jobfiles import JobFiles
 from service.datasets.metadata import build_metadata
-from service.datasets.publish import IncompleteShards, run_merge_task
+from service.datasets.publish import IncompleteShards, ResultWindow, run_merge_task
 from service.datasets.storage import (
     METADATA_FILE,
     DatasetStorage,
@@ -37,6 +37,7 @@ __all__ = [
     "JobFiles",
     "METADATA_FILE",
     "run_merge_task",
+    "ResultWindow",
     "IncompleteShards",
     "build_metadata",
 ]

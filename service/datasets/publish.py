@@ -33,11 +33,29 @@ from service.datasets.storage import METADATA_FILE, DatasetStorage, StagedVersio
 from service.faults import pause_point
 from service.store import JobStore, Lease, StoredFile, StoreError
 
-__all__ = ["run_merge_task", "IncompleteShards"]
+__all__ = ["run_merge_task", "IncompleteShards", "ResultWindow"]
 
 
 class IncompleteShards(StoreError):
     """The stored fold does not match the job row's cursor (a bug: they are committed together)."""
+
+
+class ResultWindow:
+    """The fold's reads of shard results, ``size`` tasks per query: ``get(task)`` is the result
+    of ``task`` if it was done when its window was read, else None (the fold stops there and
+    waits; the commit that ends the round re-checks the next batch, so no wake-up is lost).
+    Tasks are asked for in increasing order; a skipped range is jumped over."""
+
+    def __init__(self, store: JobStore, job_id: str, size: int = 64) -> None:
+        self.store, self.job_id, self.size = store, job_id, size
+        self.results: dict = {}
+        self.start = self.stop = 0
+
+    def get(self, task: int):
+        if not self.start <= task < self.stop:
+            self.start, self.stop = task, task + self.size
+            self.results = self.store.shard_results_in(self.job_id, self.start, self.stop)
+        return self.results.pop(task, None)
 
 
 def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, keep_files: bool = False) -> int | None:
@@ -63,9 +81,10 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
     skipped: list[range] = []
     last = None
     folded_now = 0  # shards folded by this round
+    results = ResultWindow(store, lease.job_id)
     while not fold.done:
         task = fold.next_task
-        stored = store.shard_result(lease.job_id, task)
+        stored = results.get(task)
         if stored is None:
             break
         data = files.read(stored, f"task {task}") if isinstance(stored, StoredFile) else stored

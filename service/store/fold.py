@@ -50,6 +50,20 @@ class FoldMixin(StoreBase):
             return None
         return bytes(row.payload) if row.uri is None else StoredFile(row.uri, int(row.bytes), row.sha256)
 
+    def shard_results_in(self, job_id: str, start: int, stop: int) -> dict[int, StoredResult]:
+        """The results of the done tasks in [start, stop), by task: one query for a window of
+        the fold's reads (each read waits its turn for a pooled connection at fleet scale)."""
+        r = shard_results.c
+        with self._read() as conn:
+            rows = conn.execute(
+                sa.select(r.shard_index, r.uri, r.bytes, r.sha256, r.payload)
+                .join(tasks, sa.and_(tasks.c.job_id == r.job_id, tasks.c.shard_index == r.shard_index,
+                                     tasks.c.kind == TaskKind.SHARD))
+                .where(r.job_id == job_id, r.shard_index >= int(start), r.shard_index < int(stop),
+                       tasks.c.state == TaskState.DONE)
+            ).all()
+        return {int(i): bytes(p) if uri is None else StoredFile(uri, int(n), h) for i, uri, n, h, p in rows}
+
     def shard_files(self, job_id: str) -> list[tuple[int, StoredResult]]:
         """Every recorded ``(task, result)`` of a job, in task order (for tests and tools)."""
         r = shard_results.c

@@ -197,3 +197,23 @@ def test_retry_decision_formula():
     assert decide_retry(5, 5, policy).retry is False
     with pytest.raises(ValueError, match="attempts must be >= 1"):
         decide_retry(0, 3)
+
+
+def test_fold_reads_done_results_a_window_at_a_time(store):
+    from service.datasets import ResultWindow
+
+    job = store.submit(FakeSpec(shards=7))
+    leases = {lease.shard_index: lease for lease in (store.claim("w", 30) for _ in range(7))}
+    for i in (0, 1, 2, 4, 5, 6):  # task 3 still running
+        store.complete_shard(leases[i], stored(f"r{i}".encode()), photons=1, elapsed_s=0.0)
+    assert set(store.shard_results_in(job.id, 1, 5)) == {1, 2, 4}
+    reads = []
+    real = store.shard_results_in
+    store.shard_results_in = lambda *a: reads.append(a[1:]) or real(*a)
+    window = ResultWindow(store, job.id, size=3)
+    got = [window.get(t) for t in range(4)]
+    assert got[:3] == [stored(b"r0"), stored(b"r1"), stored(b"r2")] and got[3] is None  # stops at the running task
+    assert reads == [(0, 3), (3, 6)]  # two reads for four tasks
+    store.complete_shard(leases[3], stored(b"r3"), photons=1, elapsed_s=0.0)
+    again = ResultWindow(store, job.id, size=3)
+    assert [again.get(t) for t in (3, 4, 6)] == [stored(b"r3"), stored(b"r4"), stored(b"r6")]  # 5 jumped over
