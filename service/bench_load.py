@@ -12,8 +12,10 @@ is checked: every job succeeded and published one version, every shard and merge
 claimed once and completed once, the photons counted equal the photons asked for.
 
 Prints request counts, errors (any answer but 200/201, or no answer), latency percentiles of
-submissions and status reads, the request rate, the server's CPU time per request (from /proc:
-what the latencies are made of when the machine is busy), the drain time and the checks.
+submissions and status reads, the request rate, the server's and the clients' CPU time per request
+and the server's share of one core (from /proc and the process clock: what the latencies are made
+of when the machine is busy; clients in a closed loop wait ``clients / rate`` on average whatever
+the server's speed), the drain time and the checks.
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ class LoadReport:
     read_s: list[float] = field(default_factory=list)
     load_wall_s: float = 0.0
     server_cpu_s: float = 0.0
+    client_cpu_s: float = 0.0
     drain_s: float | None = None
     checks: dict[str, object] = field(default_factory=dict)
 
@@ -79,6 +82,8 @@ class LoadReport:
                         "max": ms(self.read_s, 1.0)},
             "requests_per_s": round((self.submissions + self.reads) / self.load_wall_s, 1) if self.load_wall_s else None,
             "server_cpu_ms_per_request": round(1000 * self.server_cpu_s / max(1, self.submissions + self.reads), 2),
+            "client_cpu_ms_per_request": round(1000 * self.client_cpu_s / max(1, self.submissions + self.reads), 2),
+            "server_cpu_share": round(self.server_cpu_s / self.load_wall_s, 2) if self.load_wall_s else None,
             "load_wall_s": round(self.load_wall_s, 2), "drain_s": None if self.drain_s is None else round(self.drain_s, 2),
             "checks": self.checks,
         }
@@ -235,10 +240,11 @@ def run_load(db_url: str | None = None, *, jobs: int = 1000, reads: int = 10000,
         procs += [_start(["worker", "--db", db_url, "--storage", storage, "--poll-seconds", "0.2",
                           "--worker-id", f"load-{i}"], root / f"worker-{i}.log", env, worker_nice)
                   for i in range(workers)]
-        t0, cpu0 = time.perf_counter(), cpu_seconds(procs[0].pid)
+        t0, cpu0, own0 = time.perf_counter(), cpu_seconds(procs[0].pid), time.process_time()
         ids = asyncio.run(_drive(base, jobs, reads, clients, report))
         report.load_wall_s = time.perf_counter() - t0
         report.server_cpu_s = cpu_seconds(procs[0].pid) - cpu0
+        report.client_cpu_s = time.process_time() - own0
         t1 = time.monotonic()
         while store.pending_tasks() and time.monotonic() - t1 < drain_seconds:
             time.sleep(0.25)
