@@ -5,7 +5,9 @@
 ``Worker.run`` installs the signal handlers and calls ``loop``; ``loop`` alternates ``claim`` and
 ``process``. While a task runs, a heartbeat thread extends the lease every ``heartbeat_seconds``;
 if a heartbeat finds the lease lost (expired and re-claimed, or the job cancelled) the shard is
-abandoned at the next progress call and its result discarded. SIGTERM/SIGINT: a running shard is
+abandoned at the next progress call and its result discarded. A finished shard's commit that
+fails with a database error (a restart, a failover) is retried for up to two minutes; no database
+error ends the worker (a failure it cannot record is left to the lease). SIGTERM/SIGINT: a running shard is
 abandoned and its lease released (queued again, not counted as an attempt), a running merge is
 finished; then the worker exits with status 0. Logs: one JSON object per line on stderr unless
 stderr is a terminal.
@@ -42,6 +44,12 @@ IDLE_BACKOFF_CAP = 8.0
 
 class _Abandon(Exception):
     """Raised from the progress callback to stop a shard early (lease lost, or stopping)."""
+
+
+class _CommitUnknown(Exception):
+    """A finished shard's commit kept failing with database errors: whether one attempt went
+    through is not known. The lease decides: if nothing was recorded it expires and the shard
+    is walked again (bit-identically) by whoever claims it."""
 
 
 class _Heartbeat(threading.Thread):
@@ -99,7 +107,7 @@ class Worker:
         self, store: JobStore, storage: DatasetStorage, *, worker_id: str | None = None, lease_seconds: float = 60.0,
         heartbeat_seconds: float | None = None, once: bool = False, max_tasks: int | None = None,
         poll_seconds: float = 1.0, max_poll_seconds: float | None = None, stall_seconds: float | None = 300.0,
-        keep_shard_files: bool = False,
+        keep_shard_files: bool = False, commit_retry_seconds: float = 120.0,
     ) -> None:
         self.store, self.storage = store, storage
         self.keep_shard_files = keep_shard_files
@@ -115,6 +123,7 @@ class Worker:
         if not self.max_poll_seconds >= poll_seconds:
             raise ValueError(f"max_poll_seconds must be >= poll_seconds ({poll_seconds}); received {max_poll_seconds}")
         self.stall_seconds = stall_seconds
+        self.commit_retry_seconds = commit_retry_seconds
         self.stopping = threading.Event()
         self.processed = 0
         self._specs: dict[str, SimulationSpec] = {}
@@ -194,8 +203,14 @@ class Worker:
             if beat.lost.is_set():
                 log.warning("shard abandoned: lease lost", extra=fields)
             else:
-                released = self.store.release(lease)
+                try:
+                    released = self.store.release(lease)
+                except DBAPIError as db_exc:
+                    released = f"no (database error: {db_exc}); the lease will expire"
                 log.info("shard abandoned: stopping; lease released", extra={**fields, "released": released, "reason": str(exc)})
+        except _CommitUnknown as exc:
+            log.error("shard not committed: database unreachable; the lease will expire and the shard be claimed "
+                      "again unless a commit went through", extra={**fields, "error": str(exc)[:500]})
         except Exception as exc:  # the task failed: record it (retry or fail the job)
             error = f"{type(exc).__name__}: {exc}"
             try:
@@ -203,6 +218,9 @@ class Worker:
                 log.error("task failed", extra={**fields, "error": error, "will_retry": retried})
             except (LeaseLost, JobNotFound):
                 log.warning("task failed after its lease was lost", extra={**fields, "error": error})
+            except DBAPIError as db_exc:  # the database is unreachable: the lease expiring retries the task
+                log.error("task failed; the failure could not be recorded, the lease will expire and the task "
+                          "be claimed again", extra={**fields, "error": error, "db_error": str(db_exc)[:300]})
         finally:
             beat.stop()
 
@@ -232,12 +250,42 @@ class Worker:
         # file a commit recorded.
         ref = files.write(f"shards/{lease.shard_index:08d}-{lease.token}.tally", payload)
         try:
-            self.store.complete_shard(lease, ref, photons=n_photons, elapsed_s=elapsed_s)
+            self._commit_shard(lease, ref, n_photons, elapsed_s, fields)
+        except _CommitUnknown:
+            raise  # the file stays: a commit whose answer was lost may have recorded it
         except BaseException:
             files.delete(ref)  # not recorded: nobody will read it
             raise
         log.info("shard done", extra={**fields, "photons": n_photons, "elapsed_s": round(elapsed_s, 3),
                                       "payload_bytes": ref.bytes})
+
+    def _commit_shard(self, lease: Lease, ref, photons: int, elapsed_s: float, fields: dict) -> None:
+        """``complete_shard``, retried through database errors (a restart, a failover, a dropped
+        link) for up to ``commit_retry_seconds``: a finished walk is not thrown away for a blip.
+
+        A failed attempt may have committed with only its answer lost; before trying again the
+        task's recorded result is read back, and our file (its name carries the lease token)
+        there means done. The fence refuses the retry if the lease went to another worker
+        meanwhile (LeaseLost). Raises :class:`_CommitUnknown` when giving up after an error.
+        """
+        deadline = time.monotonic() + self.commit_retry_seconds
+        delay, failures = 0.2, 0
+        while True:
+            try:
+                if failures:
+                    recorded = self.store.shard_result(lease.job_id, lease.shard_index)
+                    if getattr(recorded, "uri", None) == ref.uri:
+                        log.info("commit found recorded after a lost answer", extra=fields)
+                        return
+                self.store.complete_shard(lease, ref, photons=photons, elapsed_s=elapsed_s)
+                return
+            except DBAPIError as exc:
+                failures += 1
+                if time.monotonic() + delay > deadline or self.stopping.is_set():
+                    raise _CommitUnknown(f"the shard's commit failed {failures} times: {exc}") from exc
+                log.warning("commit failed; retrying", extra={**fields, "error": str(exc)[:300], "failures": failures})
+                self.stopping.wait(delay)
+                delay = min(5.0, 2 * delay)
 
     def _walk(self, lease: Lease, progress) -> tuple[bytes, int, float]:
         """Walk the leased shard: its tally's bytes, its photons and the walk's seconds
