@@ -11,22 +11,36 @@ version (``complete_merge``).
 
 from __future__ import annotations
 
+import hashlib
+from typing import Protocol
+
 import sqlalchemy as sa
+from sqlalchemy.engine import Connection
 
 from service.store.base import StoreBase
 from service.store.errors import LeaseLost
 from service.store.records import FoldPosition, Lease, MediumProgress, StoredFile
-from service.store.states import TaskKind, TaskState
-from service.store.tables import jobs, shard_results, tasks
+from service.store.states import JobState, TaskKind, TaskState
+from service.store.tables import dataset_versions, jobs, shard_results, tasks
 
-__all__ = ["FoldMixin", "StoredResult"]
+__all__ = ["FoldMixin", "StoredResult", "Publisher"]
 
 StoredResult = StoredFile | bytes
 """A shard's stored result: its file, or (stored before migration 0004) the payload itself."""
 
 
+class Publisher(Protocol):
+    """Moves a staged dataset version into place (see ``service.datasets.StagedVersion``)."""
+
+    def uri_for(self, version: int) -> str:
+        """Where version ``version`` will live."""
+
+    def publish(self, version: int) -> None:
+        """Atomically make the staged files version ``version`` (called inside the DB transaction)."""
+
+
 class FoldMixin(StoreBase):
-    """Reads and fenced commits of the incremental merge (with QueueMixin's ``_fenced`` and
+    """Reads and fenced commits of the incremental merge, and its publish (with QueueMixin's ``_fenced``, ``_finish`` and
     ``_wake_merge`` in :class:`service.store.JobStore`)."""
 
     def fold_position(self, job_id: str) -> FoldPosition:
@@ -136,3 +150,64 @@ class FoldMixin(StoreBase):
                            folded >= (int(m) + 1) * shards_per_medium, int(photons))
             for m, n, done, running, skipped, photons in rows
         ]
+
+    def complete_merge(self, lease: Lease, name: str, meta: dict, publisher: Publisher) -> int:
+        """Publish a dataset version and end the job ``succeeded``, in one transaction.
+
+        Inside it: fence the merge lease; take the per-name version lock (:meth:`_lock_name`),
+        so that ``version = max + 1`` over the name's rows (tombstones included) is read and
+        inserted by one publisher at a time: concurrent publishes of a name queue for it and
+        each gets the next number, none fails (no retry loop to exhaust); move the staged files
+        into place (``publisher.publish``); mark the job succeeded. If the process dies between
+        the move and the commit, the directory is an orphan no catalog row points to (the next
+        publisher of that version replaces it). Returns the version number.
+        """
+        if lease.kind != TaskKind.MERGE:
+            raise ValueError(f"complete_merge needs a merge lease; received a {lease.kind} lease")
+        with self._tx() as conn:
+            self._lock_job(conn, lease.job_id)
+            self._finish(conn, lease)
+            self._lock_name(conn, name)
+            version = 1 + conn.execute(
+                sa.select(sa.func.coalesce(sa.func.max(dataset_versions.c.version), 0))
+                .where(dataset_versions.c.name == name)
+            ).scalar_one()
+            now = self._now()
+            conn.execute(
+                sa.insert(dataset_versions).values(
+                    name=name, version=version, uri=publisher.uri_for(version), created_at=now,
+                    job_id=lease.job_id, meta=meta,
+                )
+            )
+            publisher.publish(version)
+            # Shards the merge no longer needs (the last medium met its target early):
+            # cancelled as skipped, so that every task of a finished job is resolved.
+            skipped = conn.execute(
+                sa.update(tasks).where(
+                    tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.SHARD,
+                    tasks.c.state.in_([TaskState.QUEUED, TaskState.LEASED, TaskState.WAITING]),
+                ).values(state=TaskState.CANCELLED, lease_expires_at=None, finished_at=now,
+                         error="skipped: its medium met the target error with fewer shards")
+            ).rowcount
+            conn.execute(
+                sa.update(jobs).where(jobs.c.id == lease.job_id).values(
+                    state=JobState.SUCCEEDED, finished_at=now, updated_at=now, folded=jobs.c.shards,
+                    dataset_name=name, dataset_version=version, shards_skipped=jobs.c.shards_skipped + skipped,
+                )
+            )
+        return version
+
+    def _lock_name(self, conn: Connection, name: str) -> None:
+        """Hold the version lock of dataset ``name`` until the end of the transaction.
+
+        PostgreSQL: ``pg_advisory_xact_lock(key)``, key = the first 8 bytes of
+        sha256("bssrdf-dataset-version:" + name) as a signed 64-bit integer (two names sharing a
+        key only publish one after the other); transaction-scoped, so it works through pgbouncer
+        in transaction mode. At READ COMMITTED the ``max(version)`` read after the lock is a new
+        snapshot that sees the previous holder's committed row. SQLite: nothing to do, the
+        transaction's ``BEGIN IMMEDIATE`` already holds the database's single write lock.
+        """
+        if self.dialect_name == "postgresql":
+            digest = hashlib.sha256(f"bssrdf-dataset-version:{name}".encode()).digest()
+            key = int.from_bytes(digest[:8], "big", signed=True)
+            conn.execute(sa.select(sa.func.pg_advisory_xact_lock(sa.literal(key, sa.BigInteger))))
