@@ -40,8 +40,8 @@ class Publisher(Protocol):
 
 
 class FoldMixin(StoreBase):
-    """Reads and fenced commits of the incremental merge, and its publish (with QueueMixin's ``_fenced``, ``_finish`` and
-    ``_wake_merge`` in :class:`service.store.JobStore`)."""
+    """Reads and fenced commits of the incremental merge, and its publish (with QueueMixin's
+    ``_fenced``, ``_finish`` and ``_wake_merge`` in :class:`service.store.JobStore`)."""
 
     def fold_position(self, job_id: str) -> FoldPosition:
         """The job's fold cursor, fold file and task counters."""
@@ -52,17 +52,7 @@ class FoldMixin(StoreBase):
 
     def shard_result(self, job_id: str, task: int) -> StoredResult | None:
         """The result of task ``task`` if it is done (its task row done, its result recorded), else None."""
-        r = shard_results.c
-        with self._read() as conn:
-            row = conn.execute(
-                sa.select(r.uri, r.bytes, r.sha256, r.payload)
-                .join(tasks, sa.and_(tasks.c.job_id == r.job_id, tasks.c.shard_index == r.shard_index,
-                                     tasks.c.kind == TaskKind.SHARD))
-                .where(r.job_id == job_id, r.shard_index == int(task), tasks.c.state == TaskState.DONE)
-            ).first()
-        if row is None:
-            return None
-        return bytes(row.payload) if row.uri is None else StoredFile(row.uri, int(row.bytes), row.sha256)
+        return self.shard_results_in(job_id, task, task + 1).get(int(task))
 
     def shard_results_in(self, job_id: str, start: int, stop: int) -> dict[int, StoredResult]:
         """The results of the done tasks in [start, stop), by task: one query for a window of
