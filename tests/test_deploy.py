@@ -105,11 +105,13 @@ def test_dockerfile_installs_pinned_cpu_torch_before_the_package_and_runs_as_a_u
     cmds = _dockerfile()
     runs = [(i, c.value[0]) for i, c in enumerate(cmds) if c.cmd == "RUN"]
     torch = [(i, r) for i, r in runs if "torch" in r]
-    package = [i for i, r in runs if "pip install ." in r]
+    package = [i for i, r in runs if r.startswith("pip install") and r.endswith(" .")]
     assert len(torch) == 1 and len(package) == 1, runs
     i_torch, torch_run = torch[0]
     assert "torch==" in torch_run and "--index-url https://download.pytorch.org/whl/cpu" in torch_run, torch_run
     assert i_torch < package[0], "torch must come from the CPU index before the package pulls a default build"
+    assert "-c constraints.txt" in dict(runs)[package[0]], \
+        "the package's dependencies come from the lock"
     # The same torch as the package pins, so `pip install .` finds it installed and pulls no other build.
     import tomllib
 
