@@ -1,4 +1,4 @@
-"""Bin layout of the tallies (ARCHITECTURE.md, "Bins and tallies").
+"""Bin layout of the tallies (docs/architecture.md, "Physics conventions").
 
 A spatial bin is an annular sector of the surface z = 0 around the entry point:
 r in [r_lo, r_hi) [mm] x theta_s in [theta_lo, theta_hi) [rad], theta_s measured from +x (the

@@ -1,6 +1,6 @@
 """Arrow schemas of the stored tables, their column docs and the Parquet metadata keys.
 
-Three tables per dataset version (ARCHITECTURE.md, "Bins and tallies" and "Datasets"); every
+Three tables per dataset version (docs/architecture.md, "Physics conventions" and "Datasets and exports"); every
 row is for one (estimator, medium, incidence angle, channel, component), and carries the
 medium's coordinates ``medium`` (its index in the job: 0 for a single medium, see
 :mod:`schema.media`), ``albedo``, ``g`` and ``eta`` (of the row's channel), so the media of a

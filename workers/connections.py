@@ -1,4 +1,4 @@
-"""The connection estimator (seed section 2) with multiple importance sampling.
+"""The connection estimator (next-event connections to the surface) with multiple importance sampling.
 
 At a scattering vertex x_p reached with weight w travelling along w_p, the flux that leaves
 through a surface element dA at x_o after this one scattering and no other is

@@ -7,7 +7,7 @@ Every random number of a run is a pure function of a *key* and a *counter*:
 
 so a photon's random stream does not depend on the lane it runs in, the batch size, the number
 of threads or workers, or the order in which shards run.  That is what makes the tables bitwise
-reproducible (ARCHITECTURE.md, "Statistics and determinism"), and because the generator is plain
+reproducible (docs/architecture.md, "Determinism"), and because the generator is plain
 integer arithmetic it fuses into the compiled walk step (research/performance.md).
 
 Philox-4x32-10 is the generator of Salmon, Moraes, Dror and Shaw, "Parallel random numbers: as easy

@@ -9,7 +9,7 @@ and medium counts. A finished medium's tables are written as a *part* (:func:`wr
 and the parts are streamed into the job's tables at the end (:func:`write_sweep_tables`):
 a medium per row group, summary.json row by row.
 
-Early stop (the spec's target error, issue 9): a ``stop_rule(result) -> bool`` given to
+Early stop (the spec's target error, schema/target.py): a ``stop_rule(result) -> bool`` given to
 JobFold is asked after each folded shard of a medium; when it holds at K shards the medium ends
 there (its result is exactly the fold of shards 0..K-1) and the fold moves on to the next
 medium's shard 0; :meth:`JobFold.skipped` names the tasks whose results are then never counted.

@@ -11,7 +11,7 @@ the ratio estimator's
 
     se(m)^2 = K / (K - 1) * (S2 - 2 m SXN + m^2 NN) / N^2.
 
-Two kinds of unit (ARCHITECTURE.md, "Statistics and determinism"):
+Two kinds of unit (docs/architecture.md, "Statistics"):
 
 - **photons** (K = N, n_u = 1, SXN = S1, NN = N): exact per-photon second moments, se^2 =
   (S2 / N - m^2) / (N - 1) with N - 1 degrees of freedom.  Used for the exit tally, the hybrid

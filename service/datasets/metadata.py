@@ -17,7 +17,7 @@ def build_metadata(
     photons: int, photons_per_shard: list[int], timings: dict[str, float], summary: Any,
     files: dict[str, dict[str, Any]],
 ) -> dict[str, Any]:
-    """Everything a version records about itself (ARCHITECTURE.md, Datasets).
+    """Everything a version records about itself (docs/architecture.md, "Datasets and exports").
 
     ``files`` maps every table file to its sha256 and size; the metadata file's own sha256 is
     kept in the catalog row (``metadata_sha256``).

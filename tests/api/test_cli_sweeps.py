@@ -1,4 +1,4 @@
-"""The command line on sweeps (issue 10): ``bssrdf simulate`` and ``bssrdf run`` print rows that
+"""The command line on sweeps: ``bssrdf simulate`` and ``bssrdf run`` print rows that
 carry each medium's coordinates, and ``bssrdf status`` (plain and ``--media``) reports a sweep's
 progress overall and per medium."""
 

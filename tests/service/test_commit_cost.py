@@ -1,4 +1,4 @@
-"""A shard commit costs O(1) in the job's size (issue 10): ``complete_shard`` bumps a counter on
+"""A shard commit costs O(1) in the job's size: ``complete_shard`` bumps a counter on
 the job row and counts only the ``fold_batch`` tasks the fold needs next, through the
 (job_id, shard_index) index, instead of counting all of the job's unfinished tasks.
 

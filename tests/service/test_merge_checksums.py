@@ -1,4 +1,4 @@
-"""The merge reads every shard file against the sha256 its commit recorded (issue 10): one byte
+"""The merge reads every shard file against the sha256 its commit recorded: one byte
 changed in a committed shard file is found, the shard is never folded, the job fails with the
 file and both digests in its error, and no version is published. The design does not redo the
 shard: the merge fails on each attempt (the corruption is persistent), then the job fails."""

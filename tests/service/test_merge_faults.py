@@ -1,4 +1,4 @@
-"""The merge under load and faults (issue 10): a 256-shard job merges in the memory of a 16-shard
+"""The merge under load and faults: a 256-shard job merges in the memory of a 16-shard
 one (the fold holds one shard and one accumulator), and a worker SIGKILLed in the middle of a
 fold round, or inside the publish (tables moved into place, catalog row not committed), leaves
 the last committed state, from which another worker publishes the same bytes as an uninterrupted

@@ -1,4 +1,4 @@
-"""Sweeps through the job service (issue 10): real worker processes give the bytes of
+"""Sweeps through the job service: real worker processes give the bytes of
 ``simulate_sweep`` on SQLite with one worker and on PostgreSQL with three, with shard results as
 files in dataset storage (local, and an S3-compatible server started here: moto), checked by
 sha256, folded in task order as they arrive, a medium stopped at its target error (its other

@@ -2,7 +2,7 @@
 
 Areas and solid angles against their closed forms, equal-solid-angle directional bins by a
 chi-square on isotropic directions, half-open [lo, hi) lookup at exact edges, angle wrapping,
-and the outgoing azimuth measured from the radial direction (ARCHITECTURE.md, "Bins and tallies").
+and the outgoing azimuth measured from the radial direction (workers/conventions.py, "Angles of a bin").
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Deterministic functions are checked against closed forms (normal incidence, Brewster angle,
 total internal reflection), identities (energy conservation, reciprocity, Snell's law) and the
-independent scalar Fresnel of tests/reference/fresnel.py (STYLE.md points 7-9).  No statistical
+independent scalar Fresnel of tests/reference/fresnel.py (closed forms and identities, the vectorised kernel against a scalar one).  No statistical
 tests here, so no multiple-testing correction.
 """
 

@@ -2,7 +2,7 @@
 exponential free path.
 
 Samplers are chi-square tested against their own pdf with cell masses integrated by scipy
-(tests/support/stats.py), pdfs against closed forms and quadrature (STYLE.md points 7-9).  Uniforms for
+(tests/support/stats.py), pdfs against closed forms and quadrature (chi-square against its own pdf, identities, the vectorised kernel against a scalar one).  Uniforms for
 the samplers come from numpy's PCG64 so that these tests do not depend on workers/rng.py.
 Fresnel and refraction are in tests/workers/test_optics_fresnel.py, scatter_direction in
 tests/workers/test_optics_scatter.py.

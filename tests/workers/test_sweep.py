@@ -1,4 +1,4 @@
-"""Sweeps in the workers (issue 10): a sweep's entry equals the single-medium job of that medium
+"""Sweeps in the workers: a sweep's entry equals the single-medium job of that medium
 bit for bit; the streaming fold (one accumulator, shard by shard, saved and restored between
 processes) gives the bytes of the merge of a list; the job fold runs media in task order and
 stops a medium early under a stop rule with the result of exactly its first K shards; the same

@@ -1,4 +1,4 @@
-"""Determinism (ARCHITECTURE.md, statistics and determinism; issue 2).
+"""Determinism (docs/architecture.md, "Determinism").
 
 A spec and seed give bitwise-identical statistics and tables whatever the shard order, the torch
 thread count and how often a shard runs; the shard count belongs to the spec.  The walk here is

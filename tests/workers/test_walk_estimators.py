@@ -1,4 +1,4 @@
-"""The exit and connection estimators measure the same G per bin (ARCHITECTURE.md, estimators).
+"""The exit and connection estimators measure the same G per bin (docs/architecture.md, "Estimators").
 
 Each comparison runs the two estimators in separate walks with different seeds, so the two
 estimates are independent and z = (a - b) / sqrt(se_a^2 + se_b^2) has unit spread exactly when

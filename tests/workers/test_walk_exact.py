@@ -41,7 +41,7 @@ H_CASES = [
 
 @pytest.mark.parametrize("albedo, absorption, photons, shards, batches", H_CASES)
 def test_rd_matches_h_function(albedo, absorption, photons, shards, batches, walk_spec, walk_stats):
-    """Total Rd within 3 se + 0.2 % of 1 - sqrt(1-a) H(1) (issue 2); single within the t cut."""
+    """Total Rd within 3 se + 0.2 % of 1 - sqrt(1-a) H(1); single within the t cut."""
     spec = walk_spec(
         1.0 - albedo, albedo, g=0.0, eta=1.0, n_r=1, max_mm=100.0, photons=photons, shards=shards,
         batches_per_shard=batches, estimator="exits", absorption=absorption, seed=11,
@@ -150,7 +150,7 @@ def test_single_scattering_directional(single_runs, matched_runs, est, eta, quan
 
     S is compared as its raw sum (the radiance integrated over dA d omega: sum of w / cos_o),
     the table's S times A Omega.  At normal incidence a photon scattered once leaves radially
-    (phi_o = 0), so all its flux is in the first phi_o bin (ARCHITECTURE.md, binning edge) and
+    (phi_o = 0), so all its flux is in the first phi_o bin (workers/conventions.py, "Angles of a bin") and
     the others hold exactly 0.
     """
     result = (single_runs if eta == SS_ETA else matched_runs)[est]

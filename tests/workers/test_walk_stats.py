@@ -159,7 +159,7 @@ def test_bins_table_is_g_and_s_over_area_and_solid_angle(table_run):
     for lo_col, hi_col, ax, idx in (("theta_s_lo", "theta_s_hi", L.theta_s, it), ("cos_theta_o_lo", "cos_theta_o_hi", L.cos_o, ic),
                                     ("phi_o_lo", "phi_o_hi", L.phi_o, ip)):  # fmt: skip
         assert np.array_equal(ax[idx], t[lo_col]) and np.array_equal(ax[idx + 1], t[hi_col])
-    # A = (r_hi^2 - r_lo^2) / 2 * dtheta_s, Omega = dcos * dphi (ARCHITECTURE.md, bins).
+    # A = (r_hi^2 - r_lo^2) / 2 * dtheta_s, Omega = dcos * dphi (schema/bins.py).
     area = 0.5 * (t["r_hi_mm"] ** 2 - t["r_lo_mm"] ** 2) * (t["theta_s_hi"] - t["theta_s_lo"])
     omega = (t["cos_theta_o_hi"] - t["cos_theta_o_lo"]) * (t["phi_o_hi"] - t["phi_o_lo"])
     for est in ("exits", "connections"):

@@ -3,7 +3,7 @@
 Every export writes :meth:`ExportSource.provenance` into its files: the dataset name and version,
 the spec hash, the code version that made the export (:func:`schema.version.code_version`) and
 the one that made the tables, and the sha256 of each table it read. Exports are derived from
-stored tables only, never from live state (ARCHITECTURE.md, "Datasets").
+stored tables only, never from live state (docs/architecture.md, "Datasets and exports").
 """
 
 from __future__ import annotations
