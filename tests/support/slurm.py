@@ -7,7 +7,8 @@ directory, on free ports; nothing system-wide is used beyond the installed packa
     with SlurmCluster() as cluster:       # started; the node is idle
         job = cluster.sbatch(["--array=0-1", script], env={**cluster.env, ...})
         cluster.tasks(job)                # {array task id: ArrayTask(state, exit_code)}
-        cluster.scancel(f"{job}_0")
+        cluster.scancel(f"{job}_0")       # SIGTERM to every process of the task, SIGKILL later
+        cluster.signal_batch_shell(f"{job}_1", "TERM")  # to its batch shell alone
     # on exit: every job cancelled, stray job processes killed, daemons stopped, files removed
 
 What works in a container without systemd or a writable cgroup tree (found on Debian 12,
@@ -244,6 +245,11 @@ class SlurmCluster:
 
     def scancel(self, target: str) -> None:
         self._run(["scancel", target])
+
+    def signal_batch_shell(self, target: str, sig: str) -> None:
+        """Signal the batch shell of ``target`` alone, not its children: what ``--signal=B:SIG@T``
+        does T seconds before the time limit (``scancel --batch``)."""
+        self._run(["scancel", "--batch", f"--signal={sig}", target])
 
     def tasks(self, job: str) -> dict[int, ArrayTask]:
         """The array tasks of ``job`` (a plain job is task 0): state and exit code. Finished jobs
