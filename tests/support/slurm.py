@@ -130,8 +130,11 @@ class SlurmCluster:
         self._check_alive("munged")
         self._start("slurmctld", [_which("slurmctld"), "-D", "-c", "-i", "-f", str(self.conf)])
         self._start("slurmd", [_which("slurmd"), "-D", "-f", str(self.conf), "-N", self.host])
-        wait_for(lambda: self._node_state() == "idle" or self._died("slurmctld") or self._died("slurmd"), 60,
-                 f"the node to be idle in sinfo; slurmctld log: {self.log('slurmctld')}; slurmd log: {self.log('slurmd')}")
+        try:
+            wait_for(lambda: self._node_state() == "idle" or self._died("slurmctld") or self._died("slurmd"), 60,
+                     "the node to be idle in sinfo")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; slurmctld log: {self.log('slurmctld')}; slurmd log: {self.log('slurmd')}") from None
         for name in ("slurmctld", "slurmd"):
             self._check_alive(name)
 
