@@ -38,23 +38,27 @@ BSSRDF="${BSSRDF_COMMAND:-bssrdf}"  # e.g. `python -m service.cli` where the pac
 export OMP_NUM_THREADS=1
 
 pids=()
+signals=0
 # Forward SLURM's TERM to every worker started so far. Set before the first worker starts, so a
 # signal that arrives while they start is not lost (nor kills this shell and orphans them).
-trap 'kill -TERM "${pids[@]}" 2>/dev/null || true' TERM
+trap 'signals=$((signals + 1)); kill -TERM "${pids[@]}" 2>/dev/null || true' TERM
 for i in $(seq 1 "${SLURM_CPUS_PER_TASK:-1}"); do
   $BSSRDF worker --once --max-tasks "$MAX_TASKS" \
     --worker-id "slurm-${SLURM_ARRAY_JOB_ID:-${SLURM_JOB_ID:-0}}-${SLURM_ARRAY_TASK_ID:-0}-$i" "$@" &
   pids+=("$!")
 done
-# Wait for every worker to exit. `wait` also returns when the trap runs (status > 128, the worker
-# still running), so wait again until the worker is gone, then once more for its own exit status
-# (bash keeps the statuses of its background processes).
+# Wait for every worker to exit. `wait` also returns when a trapped signal arrives (status > 128,
+# the trap runs right after, the worker may still be running): then wait again, for the worker's
+# own exit status.
 set +e
 status=0
 for pid in "${pids[@]}"; do
-  while kill -0 "$pid" 2>/dev/null; do wait "$pid"; done
-  wait "$pid"
-  rc=$?
+  while true; do
+    before=$signals
+    wait "$pid"
+    rc=$?
+    [ "$signals" -eq "$before" ] && break
+  done
   if [ "$rc" -ne 0 ] && [ "$status" -eq 0 ]; then status=$rc; fi
 done
 exit "$status"
