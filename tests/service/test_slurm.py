@@ -19,7 +19,7 @@ schema and a storage directory every process sees (as a shared filesystem would 
 The walk is eager (``BSSRDF_COMPILE=0``, one thread) in every process, so no kernel is compiled.
 Skipped, with the reason, where the SLURM or munge binaries are missing, without root, or without
 ``BSSRDF_TEST_POSTGRES_URL``; CI installs the packages (.ci/run). Budget: 86-134 s measured on two
-cores under a load average of 8-14 from other jobs (three runs); less on a quiet machine.
+cores under a load average of 8-16 from other jobs (four runs); less on a quiet machine.
 """
 
 from __future__ import annotations
