@@ -2,7 +2,8 @@
 `dockerfile` wheel: pinned base image, CPU torch pinned before the package, a non-root user, exec-form
 CMD; every image of compose and Kubernetes pinned, none `latest`; the API probed), every YAML file parses (and the Kubernetes objects
 have their kind, name and the fixes the issue asked for), the SLURM script is valid bash with the
-batch-shell signal, and its worker command runs locally against a real store."""
+batch-shell signal, its worker command runs locally against a real store, script arguments reach
+every worker and a failing worker fails the script (tests/service/test_slurm.py runs it on SLURM)."""
 
 from __future__ import annotations
 
@@ -60,6 +61,12 @@ def test_slurm_script_is_valid_bash_signals_the_batch_shell_and_its_workers_run(
     out = subprocess.run(["bash", str(script)], env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stderr.count('"worker stopped"') == 2, out.stderr[-2000:]
+    # Arguments after the script go to every worker, and a failing worker fails the array task
+    # (its status is the script's): an invalid lease is refused by both workers with status 2.
+    out = subprocess.run(["bash", str(script), "--lease-seconds", "0"], env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 2, (out.returncode, out.stderr[-2000:])
+    assert out.stderr.count("--lease-seconds must be > 0") == 2, out.stderr[-2000:]
 
 
 # --- the Dockerfile, parsed by BuildKit's own parser (the `dockerfile` wheel) ---
