@@ -37,6 +37,12 @@ Azimuth bins are centred on the plane of incidence
     scattering vertex is on the axis below the entry point); bins with an edge at 0 put all of
     it on one side of that edge and none in the mirror bin.
 
+Grazing bins at eta = 1
+    The exit tally scores S = w / cos(theta_o); at eta = 1 its second moment is infinite in the
+    lowest cos(theta_o) bin, so those rows of bins.parquet (exits: every component; hybrid:
+    multiple and total) carry S_infinite_variance = 1 and a NaN S_stderr; S itself is unbiased
+    (workers.output.s_infinite_variance, workers.harvest).
+
 Components
     0 = ``single`` (exactly one scattering event before leaving), 1 = ``multiple`` (two or more);
     ``total`` is their sum, formed per photon (or per batch) before squaring, so its error bar
