@@ -63,7 +63,7 @@ def test_key_columns_carry_each_channels_coordinates(tables):
 def _grazing_tables(tmp_path_factory, eta: float, estimator: str) -> dict[str, np.ndarray]:
     spec = parse_spec({
         "name": "grazing", "medium": {"sigma_a": 0.1, "sigma_s": 0.9, "g": 0.5, "eta": eta},
-        "incidence_deg": [0, 40], "photons": 3000, "shards": 2, "batches_per_shard": 2, "estimator": estimator,
+        "incidence_deg": [0, 40], "photons": 1500, "shards": 2, "batches_per_shard": 2, "estimator": estimator,
         "bins": {"radial": {"count": 3, "max_mm": 6.0}, "theta_s": {"count": 2}, "cos_theta_o": {"count": 3},
                  "phi_o": {"count": 2}},
     })  # fmt: skip
@@ -104,7 +104,7 @@ def test_grazing_bins_at_eta_1_are_flagged_with_no_error_bar(grazing_tables, est
     assert np.array_equal(t["S_infinite_variance"], want.astype(np.int64))
     assert np.array_equal(np.isnan(t["S_stderr"]), want | (t["events"] == 0))
     assert np.array_equal(np.isnan(t["G_stderr"]), t["events"] == 0)
-    assert np.all(t["events"][want] >= 0) and t["events"][want].sum() > 100
+    assert t["events"][want].sum() > 100, t["events"][want]
     assert np.all(np.isfinite(t["S"]))  # the estimate itself is kept: unbiased
 
 
