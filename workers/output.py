@@ -104,7 +104,8 @@ def bins_table(result: Result) -> pa.Table:
         g_se = result.stderr(f"{est}/bins_G")[cfg, k, :n_r].reshape(-1)
         s = result.mean(f"{est}/bins_S")[cfg, k, :n_r].reshape(-1) / a_omega
         s_se = result.stderr(f"{est}/bins_S")[cfg, k, :n_r].reshape(-1) / a_omega
-        flag = np.array([s_infinite_variance(est, keys["component"], keys["eta"], lo) for lo in L.cos_o[:-1]])[c_i]
+        per_cos = [s_infinite_variance(est, keys["component"], keys["eta"], lo) for lo in L.cos_o[:-1]]
+        flag = np.array(per_cos)[c_i]
         s_se = np.where(flag, np.nan, s_se)
         n = len(g)
         parts.append({

@@ -119,7 +119,8 @@ def test_every_batch_is_counted_once(walk_spec, walk_stats, estimator, absorptio
         tol = ROUNDING_TOL
         if absorption == "weights":  # roulette: exact only in expectation, see roulette_sd_bound
             tol += walk_stats.z_limit(result.configs.n) * roulette_sd_bound() / math.sqrt(photons)
-        print(f"{estimator} {absorption}: energy balance off by {np.abs(balance - 1.0 + result.configs.r_spec).max():.2e}, tolerance {tol:.2e}")
+        off = float(np.abs(balance - 1.0 + result.configs.r_spec).max())
+        print(f"{estimator} {absorption}: energy balance off by {off:.2e}, tolerance {tol:.2e}")
         np.testing.assert_allclose(balance, 1.0 - result.configs.r_spec, rtol=0, atol=tol)
     assert np.all(walk > 0.5)  # about 0.93 absorbed here
 
