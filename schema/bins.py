@@ -2,10 +2,17 @@
 
 A spatial bin is an annular sector of the surface z = 0 around the entry point:
 r in [r_lo, r_hi) [mm] x theta_s in [theta_lo, theta_hi) [rad], theta_s measured from +x (the
-incidence plane) over [0, 2 pi). A directional bin is uniform in cos(theta_o) over [0, 1]
-(theta_o from the outward normal +z) and in phi_o over [0, 2 pi) (phi_o from the outward radial
-direction at the exit point). Every bin is half-open [lo, hi); angles are wrapped into [0, 2 pi)
-before binning.
+incidence plane, forward). A directional bin is uniform in cos(theta_o) over [0, 1] (theta_o from
+the outward normal +z) and in phi_o (from the outward radial direction at the exit point). Every
+bin is half-open [lo, hi).
+
+Both azimuths are binned *centred on the plane of incidence*: with n bins of width h = 2 pi / n,
+bin k is [(k - 1/2) h, (k + 1/2) h) taken modulo 2 pi, so bin 0 = [-h/2, h/2) holds theta_s = 0
+(forward, +x) and phi_o = 0 (leaving radially), and the stored edges run from -h/2 to
+2 pi - h/2 (:func:`azimuth_edges`).  The problem is mirror-symmetric about the plane of
+incidence (y -> -y maps theta_s -> -theta_s and phi_o -> -phi_o), and with these bins the
+mirror of bin k is bin (n - k) mod n, a bin of the table: single scattering at normal incidence,
+which leaves exactly at phi_o = 0, falls in the middle of bin 0 instead of on its edge.
 
 Defaults: 48 log-spaced radial bins out to 16 transport mean free paths (per channel), first
 inner edge at 1e-3 of the maximum; theta_s "auto" (1 bin at normal incidence, 12 otherwise);
@@ -36,6 +43,7 @@ __all__ = [
     "BinSpec",
     "radial_edges",
     "uniform_edges",
+    "azimuth_edges",
     "MAX_TOTAL_BINS",
     "DEFAULT_MAX_MFP",
     "THETA_S_AUTO_OBLIQUE",
@@ -143,8 +151,9 @@ class RadialBins(BaseModel):
 
 
 class ThetaSBins(BaseModel):
-    """Bins of the exit azimuth theta_s over [0, 2 pi), from +x. ``count`` 1..360 or ``None``
-    ("auto": 1 if every incidence angle is 0, where the BSSRDF is symmetric, else 12)."""
+    """Bins of the exit azimuth theta_s from +x, centred on it: bin k = [(k - 1/2) h, (k + 1/2) h),
+    h = 2 pi / count (module docstring). ``count`` 1..360 or ``None`` ("auto": 1 if every
+    incidence angle is 0, where the BSSRDF is symmetric, else 12)."""
 
     model_config = _CONFIG
 
@@ -160,8 +169,8 @@ class CosThetaOBins(BaseModel):
 
 
 class PhiOBins(BaseModel):
-    """Bins uniform in phi_o over [0, 2 pi), from the outward radial direction; ``count``
-    1..360, default 8."""
+    """Bins uniform in phi_o, from the outward radial direction, centred on it: bin k =
+    [(k - 1/2) h, (k + 1/2) h), h = 2 pi / count (module docstring); ``count`` 1..360, default 8."""
 
     model_config = _CONFIG
 
@@ -184,6 +193,13 @@ def uniform_edges(lo: float, hi: float, count: int) -> np.ndarray:
     edges = np.linspace(lo, hi, count + 1, dtype=np.float64)
     edges[0], edges[-1] = lo, hi
     return edges
+
+
+def azimuth_edges(count: int) -> np.ndarray:
+    """``count + 1`` edges [rad] of azimuth bins centred on 0: uniform_edges(0, 2 pi, count) - h/2,
+    h = 2 pi / count, i.e. from -h/2 to 2 pi - h/2; bin 0 = [-h/2, h/2).  An angle a belongs to
+    the bin k whose [edges[k], edges[k+1]) holds a taken modulo 2 pi into [-h/2, 2 pi - h/2)."""
+    return uniform_edges(0.0, TWO_PI, count) - math.pi / count
 
 
 def radial_edges(radial: RadialBins, r_max_mm: float) -> np.ndarray:

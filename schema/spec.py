@@ -35,8 +35,8 @@ from pydantic_core import PydanticCustomError
 from .bins import (
     MAX_TOTAL_BINS,
     THETA_S_AUTO_OBLIQUE,
-    TWO_PI,
     BinSpec,
+    azimuth_edges,
     pbrt_radial_edges,
     radial_edges,
     uniform_edges,
@@ -288,16 +288,18 @@ class SimulationSpec(BaseModel):
         return _radial_edges_mm(self.bins, self.channels())
 
     def theta_s_edges(self) -> np.ndarray:
-        """Exit-azimuth edges [rad], from 0 to 2 pi, :meth:`theta_s_count` bins."""
-        return uniform_edges(0.0, TWO_PI, self.theta_s_count())
+        """Exit-azimuth edges [rad], :meth:`theta_s_count` bins centred on +x
+        (:func:`schema.bins.azimuth_edges`: from -h/2 to 2 pi - h/2)."""
+        return azimuth_edges(self.theta_s_count())
 
     def cos_theta_o_edges(self) -> np.ndarray:
         """Edges in cos(theta_o), from 0 (grazing) to 1 (normal)."""
         return uniform_edges(0.0, 1.0, self.bins.cos_theta_o.count)
 
     def phi_o_edges(self) -> np.ndarray:
-        """Outgoing-azimuth edges [rad], from 0 to 2 pi."""
-        return uniform_edges(0.0, TWO_PI, self.bins.phi_o.count)
+        """Outgoing-azimuth edges [rad], bins centred on the outward radial direction
+        (:func:`schema.bins.azimuth_edges`: from -h/2 to 2 pi - h/2)."""
+        return azimuth_edges(self.bins.phi_o.count)
 
     # ---- sharding -------------------------------------------------------------------------
 

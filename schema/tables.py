@@ -41,8 +41,10 @@ __all__ = [
     "table_metadata",
 ]
 
-SCHEMA_VERSION = "1"
-"""Version of the stored-table layout (see the version rule in the module docstring)."""
+SCHEMA_VERSION = "2"
+"""Version of the stored-table layout (see the version rule in the module docstring).  2: the
+theta_s and phi_o bins are centred on the plane of incidence (their edge columns start at -h/2)
+and S_stderr is NaN where S_infinite_variance is 1."""
 
 META_SPEC = b"bssrdf.spec"
 """Parquet/Arrow metadata key: the spec's canonical JSON (``SimulationSpec.canonical_json``)."""
@@ -74,17 +76,27 @@ COLUMN_DOCS: dict[str, str] = {
               "nonzero value (int64). 0 means unresolved: the estimate is 0 with a NaN standard error.",
     "unresolved_bins": "Bins of the bins table (inside r_max) with no contributing event for this "
                        "estimator, configuration and component (int64).",
-    "theta_s_lo": "Lower exit azimuth theta_s [rad] from +x (inclusive), in [0, 2 pi).",
+    "theta_s_lo": "Lower exit azimuth theta_s [rad] from +x (inclusive); bins are centred on +x, "
+                  "bin k = [(k - 1/2) h, (k + 1/2) h), h = 2 pi / n, so lo runs from -h/2; an angle "
+                  "is taken modulo 2 pi into [-h/2, 2 pi - h/2).",
     "theta_s_hi": "Upper exit azimuth theta_s [rad] (exclusive).",
     "cos_theta_o_lo": "Lower cos(theta_o) of the outgoing direction (inclusive), in [0, 1].",
     "cos_theta_o_hi": "Upper cos(theta_o) (exclusive).",
-    "phi_o_lo": "Lower outgoing azimuth phi_o [rad] from the outward radial direction.",
+    "phi_o_lo": "Lower outgoing azimuth phi_o [rad] from the outward radial direction (inclusive); "
+                "bins are centred on it, bin k = [(k - 1/2) h, (k + 1/2) h), h = 2 pi / n, so lo "
+                "runs from -h/2 and bin 0 holds phi_o = 0 (mirror of bin k: bin (n - k) mod n).",
     "phi_o_hi": "Upper outgoing azimuth phi_o [rad] (exclusive).",
     "G": "Fraction of the incident power leaving through the bin [dimensionless].",
     "G_stderr": "Standard error of G [dimensionless]; NaN where no event contributed.",
     "S": "BSSRDF averaged over the bin in dA d omega: sum w / cos(theta_o) / (A Omega) "
          "[1/(mm^2 sr)]; includes the entry Fresnel factor.",
-    "S_stderr": "Standard error of S [1/(mm^2 sr)]; NaN where no event contributed.",
+    "S_stderr": "Standard error of S [1/(mm^2 sr)]; NaN where no event contributed and where "
+                "S_infinite_variance is 1.",
+    "S_infinite_variance": "1 where the estimator's per-photon contribution to S has an infinite "
+                           "second moment, else 0 (int64): the exit tally's w / cos(theta_o) in the "
+                           "lowest cos(theta_o) bin at eta = 1 (exits: every component; hybrid: "
+                           "multiple and total). S is unbiased there, but no standard error is "
+                           "valid (one run's error is skewed low), so S_stderr is NaN.",
     "R_spec": "Specular reflectance at entry, Fr(cos theta_i, eta) [dimensionless].",
     "Rd": "Total diffuse reflectance: sum of G over all bins [dimensionless].",
     "Rd_stderr": "Standard error of Rd [dimensionless]; NaN where no event contributed.",
@@ -99,7 +111,7 @@ COLUMN_DOCS: dict[str, str] = {
 """Column name -> meaning and unit. Also stored as each field's ``doc`` metadata."""
 
 _STRING = ("estimator", "channel", "component")
-_INT64 = ("photons", "medium", "events", "unresolved_bins")
+_INT64 = ("photons", "medium", "events", "unresolved_bins", "S_infinite_variance")
 
 
 def _schema(names: list[str]) -> pa.Schema:
@@ -119,7 +131,7 @@ RADIAL_SCHEMA = _schema(_KEYS + ["r_lo_mm", "r_hi_mm", "Rd_r", "Rd_r_stderr", "e
 
 BINS_SCHEMA = _schema(_KEYS + [
     "r_lo_mm", "r_hi_mm", "theta_s_lo", "theta_s_hi", "cos_theta_o_lo", "cos_theta_o_hi",
-    "phi_o_lo", "phi_o_hi", "G", "G_stderr", "S", "S_stderr", "events",
+    "phi_o_lo", "phi_o_hi", "G", "G_stderr", "S", "S_stderr", "S_infinite_variance", "events",
 ])
 """One row per spatial x directional bin."""
 

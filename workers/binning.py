@@ -2,9 +2,11 @@
 
 Conventions in :mod:`workers.conventions`.  A spatial bin is r in [r_lo, r_hi) x theta_s in
 [lo, hi) with area A = (r_hi^2 - r_lo^2)/2 * dtheta_s; a directional bin is uniform in cos(theta_o)
-over [0, 1] and in phi_o over [0, 2 pi), so every one has solid angle Omega = dcos * dphi =
-2 pi / (n_cos * n_phi).  The radial axis has one extra *overflow* index n_r for r >= r_max: it
-collects the flux beyond the last edge so that Rd is the total diffuse reflectance.
+over [0, 1] and in phi_o over the full turn, so every one has solid angle Omega = dcos * dphi =
+2 pi / (n_cos * n_phi).  Both azimuths are binned centred on the plane of incidence
+(:func:`azimuth_index`, edges :func:`schema.bins.azimuth_edges`): bin 0 = [-h/2, h/2), h = 2 pi / n.
+The radial axis has one extra *overflow* index n_r for r >= r_max: it collects the flux beyond
+the last edge so that Rd is the total diffuse reflectance.
 """
 
 from __future__ import annotations
@@ -15,13 +17,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["BinLayout", "wrap_angle", "uniform_index", "outgoing_azimuth"]
+__all__ = ["BinLayout", "wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth"]
 
 TWO_PI = 2.0 * math.pi
 
 # Angles within this many radians below 2 pi are taken as 0: at normal incidence a photon
 # scattered once leaves exactly radially (phi_o = 0), and float rounding of atan2 may put it a few
-# ulp below zero, which would otherwise wrap it into the last bin instead of the first.
+# ulp below zero; the snap reports such an exit as phi_o = 0 rather than 2 pi - ulp.  Binning does
+# not depend on it: both lie in the middle of the centred bin 0 (:func:`azimuth_index`).
 _WRAP_SNAP = 1e-5
 
 
@@ -73,6 +76,22 @@ def _edge_function(lo: float, hi: float, count: int, dtype: torch.dtype):
     return lambda k: edges[k]
 
 
+def azimuth_index(a: torch.Tensor, count: int) -> torch.Tensor:
+    """Bin of the azimuth a [rad, any real] among ``count`` bins centred on 0, int64:
+
+        k = floor(((a + h/2) mod 2 pi) / h),   h = 2 pi / count,
+
+    i.e. bin k = [(k - 1/2) h, (k + 1/2) h) modulo 2 pi, bin 0 = [-h/2, h/2) (edges
+    :func:`schema.bins.azimuth_edges`).  Computed as :func:`uniform_index` of the shifted angle
+    over [0, 2 pi), so exact against uniform_edges(0, 2 pi, count) and, up to the rounding of
+    the half-bin shift, against the stored edges.  The mirror -a of an angle inside bin k is
+    inside bin (count - k) mod count.  A shifted angle that rounds up to 2 pi (a a few ulp below
+    -h/2) is in the last bin, as it should be.
+    """
+    half = math.pi / count
+    return uniform_index(torch.remainder(a + half, TWO_PI), 0.0, TWO_PI, count)
+
+
 def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:
     """phi_o in [0, 2 pi): azimuth of the horizontal direction (tx, ty) from the radial (px, py).
 
@@ -90,8 +109,10 @@ def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: t
 class BinLayout:
     """Edges of every bin axis; radial edges per channel in mm.
 
-    radial_mm: float64 [n_channels, n_r + 1]; theta_s, cos_o, phi_o: float64 1-D edge arrays.
-    The walk's lookups are :func:`uniform_index` and :mod:`workers.harvest`; the searched
+    radial_mm: float64 [n_channels, n_r + 1]; theta_s, cos_o, phi_o: float64 1-D edge arrays
+    (theta_s and phi_o centred on 0: :func:`schema.bins.azimuth_edges`).
+    The walk's lookups are :func:`uniform_index`, :func:`azimuth_index` and
+    :mod:`workers.harvest`; the searched
     reference they are tested against is in tests/reference/binning.py.
     """
 

@@ -8,8 +8,8 @@ through a surface element dA at x_o after this one scattering and no other is
 (optical units, d = |x_o - x_p|, w21 = (x_o - x_p)/d, cos_in = w21 . n, T21 = 1 - Fr(cos_in,
 1/eta), zero under total internal reflection).  Two techniques sample x_o:
 
-- *uniform*: for every spatial bin, x_o uniform in (r, theta_s) of the bin, density per area
-  q_u = 1 / (r dr dtheta_s);
+- *uniform*: for every spatial bin, x_o uniform in (r, theta_s) of the bin (theta_s bins centred
+  on +x, workers.conventions), density per area q_u = 1 / (r dr dtheta_s);
 - *phase*: the direction the walk samples from the phase function at this vertex, followed to the
   surface, density per area q_p = p(w_p . w21) cos_in / d^2 (zero if it heads down).
 
@@ -32,7 +32,7 @@ from typing import Iterator
 
 import torch
 
-from .binning import TWO_PI, outgoing_azimuth, uniform_index, wrap_angle
+from .binning import TWO_PI, azimuth_index, outgoing_azimuth, uniform_index
 from .conventions import PURPOSE_CONNECT
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, hg_pdf, refracted_cos, transmittance_cos_ratio
@@ -141,7 +141,7 @@ def _direction_bin(xo, yo, dx, dy, cos_in, geo: ConnectionGeometry):
     """(cos_o, direction bin index cos * n_phi + phi) of the refracted direction leaving at x_o."""
     cos_o = refracted_cos(cos_in, 1.0 / geo.eta)
     phi_o = outgoing_azimuth(xo, yo, dx, dy)
-    idx = uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + uniform_index(phi_o, 0.0, TWO_PI, geo.n_phi)
+    idx = uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + azimuth_index(phi_o, geo.n_phi)
     return cos_o, idx
 
 
@@ -170,7 +170,8 @@ def connect_uniform(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     r_lo = geo.r_lo[cfg].repeat_interleave(n_t, dim=1)  # [V, n_bins], bin = ir * n_t + it
     dr = geo.r_hi[cfg].repeat_interleave(n_t, dim=1) - r_lo
     dtheta = TWO_PI / n_t
-    theta_lo = (torch.arange(n_bins) % n_t).to(torch.float32) * dtheta
+    # theta_s bin k is [(k - 1/2) h, (k + 1/2) h), centred on +x (workers.conventions).
+    theta_lo = ((torch.arange(n_bins) % n_t).to(torch.float32) - 0.5) * dtheta
     r = r_lo + u_r * dr
     theta = theta_lo[None, :] + u_t * dtheta
     xo, yo = r * torch.cos(theta), r * torch.sin(theta)
@@ -216,7 +217,7 @@ def connect_phase(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     r_lo = geo.r_lo[cfg].gather(1, ir_c[:, None])[:, 0]
     dr = edges_hi.gather(1, ir_c[:, None])[:, 0] - r_lo
     dtheta = TWO_PI / n_t
-    it = uniform_index(wrap_angle(torch.atan2(yo, xo)), 0.0, TWO_PI, n_t)
+    it = azimuth_index(torch.atan2(yo, xo), n_t)
     cos_in = torch.clamp(vz, 0.0, 1.0)
     mu = v.ux * vx + v.uy * vy + v.uz * vz
     q_p = hg_pdf(mu, g) * cos_in / (t * t)

@@ -20,10 +20,28 @@ Directions
     Fr(uz, 1/eta); the transmitted direction is (eta ux, eta uy, sqrt(1 - eta^2 (1 - uz^2))).
 
 Angles of a bin
-    theta_s: azimuth of the exit point from +x, in [0, 2 pi).
+    theta_s: azimuth of the exit point from +x (counterclockwise seen from +z).
     theta_o: outgoing angle (outside the medium) from n; bins uniform in cos(theta_o) over [0, 1].
     phi_o:   azimuth of the outgoing direction measured from the outward radial direction at the
-             exit point (from +x at r = 0), wrapped into [0, 2 pi).
+             exit point (from +x at r = 0), counterclockwise seen from +z.
+
+Azimuth bins are centred on the plane of incidence
+    With n bins of width h = 2 pi / n, theta_s bin k and phi_o bin k are
+    [(k - 1/2) h, (k + 1/2) h) modulo 2 pi; the stored edges run from -h/2 to 2 pi - h/2
+    (schema.bins.azimuth_edges, workers.binning.azimuth_index).  Bin 0 holds theta_s = 0
+    (straight ahead along +x) and phi_o = 0 (leaving radially); for even n bin n/2 holds pi.
+    Why: the problem is mirror-symmetric about the plane of incidence (y -> -y maps theta_s to
+    -theta_s and phi_o to -phi_o), so S(r, theta_s, cos, phi_o) = S(r, -theta_s, cos, -phi_o),
+    and with centred bins the mirror of bin (k, m) is the bin ((n_t - k) mod n_t, (n_p - m) mod n_p)
+    of the same table.  Single scattering at normal incidence leaves exactly at phi_o = 0 (the
+    scattering vertex is on the axis below the entry point); bins with an edge at 0 put all of
+    it on one side of that edge and none in the mirror bin.
+
+Grazing bins at eta = 1
+    The exit tally scores S = w / cos(theta_o); at eta = 1 its second moment is infinite in the
+    lowest cos(theta_o) bin, so those rows of bins.parquet (exits: every component; hybrid:
+    multiple and total) carry S_infinite_variance = 1 and a NaN S_stderr; S itself is unbiased
+    (workers.output.s_infinite_variance, workers.harvest).
 
 Components
     0 = ``single`` (exactly one scattering event before leaving), 1 = ``multiple`` (two or more);

@@ -13,7 +13,8 @@ the tables' edges are:
 
 - radial: r = sqrt(x^2 + y^2) / sigma_t in mm, against the configuration's row of edges by a
   branchless binary search (:func:`count_le`);
-- theta_s, cos_o, phi_o: uniform bins, :func:`workers.binning.uniform_index`.
+- cos_o: uniform bins, :func:`workers.binning.uniform_index`; theta_s, phi_o: azimuth bins
+  centred on 0, :func:`workers.binning.azimuth_index`.
 
 S of an exit, w / cos_o, is unbiased for the bin's BSSRDF averaged over dA d(omega) (the flux
 through a bin is the integral of L cos_o, so the integral of L is the sum of w / cos_o), and has
@@ -29,7 +30,8 @@ biased for this one wherever the radiance varies over the bin.  tests/workers/te
 checks S per (r, cos_o) bin, the grazing bin at eta = 1 included, against the quadrature.
 
 At finite N that error bar is honest for the difference of two runs but not for one run against
-the truth.  Measured (eta = 1, g = 0.9, albedo 0.9, roulette, 6e4 photons, ~280 grazing exits per
+the truth, so the tables flag these bins (bins.parquet ``S_infinite_variance`` = 1, ``S_stderr``
+NaN: workers.output.s_infinite_variance).  Measured (eta = 1, g = 0.9, albedo 0.9, roulette, 6e4 photons, ~280 grazing exits per
 (r, phi_o) bin, 20 seeds): two-seed z of the grazing S have unit spread (tests/workers/
 test_walk_errors.py passes), while t of one run against the mean of the other 19 has mean -0.20,
 variance 1.26 and skew -0.56 (G of the same bins: -0.04, 0.85, +0.17): a run that misses the rare
@@ -53,7 +55,7 @@ from functools import lru_cache
 
 import torch
 
-from .binning import TWO_PI, outgoing_azimuth, uniform_index, wrap_angle
+from .binning import azimuth_index, outgoing_azimuth, uniform_index
 from .kernels import compile_kernel
 from .optics import refracted_cos
 from .walk import EMPTY, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_lanes
@@ -126,13 +128,13 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     r_mm = torch.sqrt(xd * xd + yd * yd) / bins.sigma_t[cfg]
     ir = torch.clamp(count_le(bins.radial_mm, cfg, r_mm) - 1, 0, bins.n_r)
     if bins.n_theta > 1:
-        it = uniform_index(wrap_angle(torch.atan2(yd, xd)), 0.0, TWO_PI, bins.n_theta)
+        it = azimuth_index(torch.atan2(yd, xd), bins.n_theta)
     else:  # one theta_s bin (normal incidence): no angle needed
         it = torch.zeros_like(ir)
     # An exit refracted out, so cos_o > 0; the clamp only keeps a padding lane finite.
     cos_o = torch.clamp(refracted_cos(lanes.uz[idx].double(), bins.inv_eta), min=1e-300)
     ic = uniform_index(cos_o, 0.0, 1.0, bins.n_cos)
-    ip = uniform_index(outgoing_azimuth(xd, yd, lanes.ux[idx].double(), lanes.uy[idx].double()), 0.0, TWO_PI, bins.n_phi)
+    ip = azimuth_index(outgoing_azimuth(xd, yd, lanes.ux[idx].double(), lanes.uy[idx].double()), bins.n_phi)
     comp = (lanes.nscat[idx] >= 2).to(torch.int64)
     n_sp = (bins.n_r + 1) * bins.n_theta
     n_dir = bins.n_cos * bins.n_phi

@@ -16,7 +16,8 @@ the first vertex, so:
     density per area q_p = p cos_in / d^2 (as in workers.connections);
   * K_SAMPLES *stratified uniform* techniques: the spatial bins inside r_max, in flat order
     r * n_theta + theta, are cut into K contiguous strata; stratum j picks one bin uniformly and a
-    point uniform in (r, theta) of it: density q_j = 1 / (n_j r dr dtheta) in its n_j bins.
+    point uniform in (r, theta) of it (theta_s bin k is [(k - 1/2) h, (k + 1/2) h), centred on
+    +x: workers.conventions): density q_j = 1 / (n_j r dr dtheta) in its n_j bins.
   A point x in stratum j gets the weight q/(q_p + q_j) for the technique q that drew it (only
   stratum j's density is nonzero there), so every contribution is bounded by w_0 a, as in the
   full connection estimator, at O(K) cost per photon instead of O(bins) per vertex.
@@ -41,7 +42,7 @@ from functools import lru_cache
 
 import torch
 
-from .binning import TWO_PI, outgoing_azimuth, uniform_index, wrap_angle
+from .binning import TWO_PI, azimuth_index, outgoing_azimuth, uniform_index
 from .conventions import PURPOSE_CONNECT, PURPOSE_WALK
 from .harvest import ExitBins, count_le, exit_bins
 from .kernels import compile_kernel
@@ -92,7 +93,7 @@ class FirstVertexGeometry:
 def _direction_index(xo, yo, dx, dy, cos_in, geo: FirstVertexGeometry):
     cos_o = refracted_cos(cos_in, 1.0 / geo.eta)
     phi_o = outgoing_azimuth(xo, yo, dx, dy)
-    return uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + uniform_index(phi_o, 0.0, TWO_PI, geo.n_phi)
+    return uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + azimuth_index(phi_o, geo.n_phi)
 
 
 def _stratum_size(flat_bin: torch.Tensor, n_bins: int, k: int) -> torch.Tensor:
@@ -134,7 +135,7 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
     xo, yo = px + t * vx, t * vy  # the vertex lies in the incidence plane (y = 0)
     r = torch.sqrt(xo * xo + yo * yo)
     ir = torch.clamp(count_le(geo.edges, cfg, r) - 1, 0, n_r)
-    it = uniform_index(wrap_angle(torch.atan2(yo, xo)), 0.0, TWO_PI, n_t)
+    it = azimuth_index(torch.atan2(yo, xo), n_t)
     inside = ir < n_r
     irc = torch.clamp(ir, max=n_r - 1)
     dr = edges.gather(1, irc[:, None] + 1)[:, 0] - edges.gather(1, irc[:, None])[:, 0]
@@ -161,7 +162,7 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
         r_lo = edges.gather(1, jr[:, None])[:, 0]
         drj = edges.gather(1, jr[:, None] + 1)[:, 0] - r_lo
         rr = r_lo + u_r * drj
-        th = (jt.to(f32) + u_t) * dtheta
+        th = (jt.to(f32) - 0.5 + u_t) * dtheta  # uniform in the centred bin [(jt - 1/2) h, (jt + 1/2) h)
         xs, ys = rr * torch.cos(th), rr * torch.sin(th)
         dx, dy, dz = xs - px, ys, -pz
         d2 = dx * dx + dy * dy + dz * dz

@@ -24,6 +24,7 @@ from .tally import BATCH_ESTIMATORS
 __all__ = [
     "radial_table", "bins_table", "summary_table", "summary_rows", "summary", "summary_head", "run_facts",
     "engine_fact", "target_entry", "write_tables", "TableWriter", "TABLE_FILES", "ROW_GROUP_ROWS",
+    "s_infinite_variance",
 ]
 
 COMPONENTS3 = ("single", "multiple", "total")
@@ -71,8 +72,25 @@ def radial_table(result: Result) -> pa.Table:
     return pa.Table.from_pydict(cols, schema=RADIAL_SCHEMA)
 
 
+def s_infinite_variance(estimator: str, component: str, eta: float, cos_lo: float) -> bool:
+    """Whether S of a bin rests on contributions with an infinite second moment.
+
+    The exit tally scores S = w / cos_o.  At eta = 1 nothing stops photons leaving near grazing
+    (the radiance is finite there), so exits have density ~ cos_o as cos_o -> 0 and in the bin
+    [0, c_1) E[(w / cos_o)^2] ~ int_0 dc / c diverges (workers/harvest.py).  For eta > 1 the
+    transmittance vanishes like cos_o (density ~ cos_o^2: finite), for eta < 1 refraction keeps
+    cos_o >= sqrt(1 - eta^2) > 0, and every bin above the lowest has cos_o >= c_1 > 0.  The exit
+    tally scores every component of ``exits`` and the ``multiple`` part (so ``total``) of the
+    hybrid; connection samples score T cos_in / cos_o, bounded (workers.connections).
+    """
+    exit_scored = estimator == "exits" or (estimator == "hybrid" and component != "single")
+    return exit_scored and eta == 1.0 and cos_lo == 0.0
+
+
 def bins_table(result: Result) -> pa.Table:
-    """G and S per (spatial x directional) bin; S = sum w / cos_o / (A Omega) per photon."""
+    """G and S per (spatial x directional) bin; S = sum w / cos_o / (A Omega) per photon.
+    S_stderr is NaN where S has no valid error bar (:func:`s_infinite_variance`, flagged in
+    S_infinite_variance) as well as where no event contributed."""
     L = result.layout
     n_r, n_t, n_c, n_p = L.n_r, L.n_theta, L.n_cos, L.n_phi
     omega = L.solid_angle()
@@ -86,13 +104,16 @@ def bins_table(result: Result) -> pa.Table:
         g_se = result.stderr(f"{est}/bins_G")[cfg, k, :n_r].reshape(-1)
         s = result.mean(f"{est}/bins_S")[cfg, k, :n_r].reshape(-1) / a_omega
         s_se = result.stderr(f"{est}/bins_S")[cfg, k, :n_r].reshape(-1) / a_omega
+        per_cos = [s_infinite_variance(est, keys["component"], keys["eta"], lo) for lo in L.cos_o[:-1]]
+        flag = np.array(per_cos)[c_i]
+        s_se = np.where(flag, np.nan, s_se)
         n = len(g)
         parts.append({
             **_repeat(keys, n), "r_lo_mm": edges[r_i], "r_hi_mm": edges[r_i + 1],
             "theta_s_lo": L.theta_s[t_i], "theta_s_hi": L.theta_s[t_i + 1],
             "cos_theta_o_lo": L.cos_o[c_i], "cos_theta_o_hi": L.cos_o[c_i + 1],
             "phi_o_lo": L.phi_o[p_i], "phi_o_hi": L.phi_o[p_i + 1],
-            "G": g, "G_stderr": g_se, "S": s, "S_stderr": s_se,
+            "G": g, "G_stderr": g_se, "S": s, "S_stderr": s_se, "S_infinite_variance": flag.astype(np.int64),
             "events": result.events(f"{est}/bins_G")[cfg, k, :n_r].reshape(-1),
         })  # fmt: skip
     cols = {f.name: list(itertools.chain.from_iterable(np.asarray(p[f.name]).tolist() for p in parts)) for f in BINS_SCHEMA}

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import torch
 
 from workers.binning import BinLayout
 
-__all__ = ["edge_index", "SearchedLookup", "searched"]
+__all__ = ["edge_index", "azimuth_edge_index", "SearchedLookup", "searched"]
 
 
 def edge_index(value: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
@@ -24,6 +26,16 @@ def edge_index(value: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     """
     idx = torch.bucketize(value.contiguous(), edges.to(value.dtype), right=True) - 1
     return torch.clamp(idx, 0, len(edges) - 2)
+
+
+def azimuth_edge_index(angle: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Bin of an azimuth (any real, radians) among edges spanning one full turn from edges[0]:
+    an angle outside [edges[0], edges[0] + 2 pi) is taken modulo 2 pi into it (one inside is
+    searched as it is, so the stored edges themselves are exact), then searched."""
+    lo = float(edges[0])
+    inside = (angle >= lo) & (angle < lo + 2.0 * math.pi)
+    wrapped = torch.where(inside, angle, lo + torch.remainder(angle - lo, 2.0 * math.pi))
+    return edge_index(wrapped, edges)
 
 
 @dataclass(frozen=True)
@@ -40,14 +52,15 @@ class SearchedLookup:
         return torch.clamp(idx, 0, self.layout.n_r)
 
     def theta_index(self, theta_s: torch.Tensor) -> torch.Tensor:
-        """theta_s bin of an angle already wrapped into [0, 2 pi)."""
-        return edge_index(theta_s, torch.from_numpy(self.layout.theta_s))
+        """theta_s bin of an angle (any real: taken modulo 2 pi into the edges' turn)."""
+        return azimuth_edge_index(theta_s, torch.from_numpy(self.layout.theta_s))
 
     def cos_index(self, cos_o: torch.Tensor) -> torch.Tensor:
         return edge_index(cos_o, torch.from_numpy(self.layout.cos_o))
 
     def phi_index(self, phi_o: torch.Tensor) -> torch.Tensor:
-        return edge_index(phi_o, torch.from_numpy(self.layout.phi_o))
+        """phi_o bin of an angle (any real: taken modulo 2 pi into the edges' turn)."""
+        return azimuth_edge_index(phi_o, torch.from_numpy(self.layout.phi_o))
 
 
 def searched(layout: BinLayout) -> SearchedLookup:

@@ -137,7 +137,7 @@ def test_radial_pbrt_refuses_an_extent_or_one_node(radial, field):
 def test_theta_s_auto_and_angular_edges():
     normal = SimulationSpec.model_validate(base())
     assert normal.theta_s_count() == 1
-    np.testing.assert_array_equal(normal.theta_s_edges(), [0.0, 2 * math.pi])
+    np.testing.assert_array_equal(normal.theta_s_edges(), [-math.pi, math.pi])  # one bin, centred on +x
     oblique = SimulationSpec.model_validate(base(incidence_deg=[45, 0]))
     assert oblique.incidence_deg == [0.0, 45.0]
     assert oblique.theta_s_count() == 12
@@ -146,10 +146,13 @@ def test_theta_s_auto_and_angular_edges():
                                                      "cos_theta_o": {"count": 4},
                                                      "phi_o": {"count": 3}}))
     assert fixed.theta_s_count() == 6
-    np.testing.assert_allclose(fixed.theta_s_edges(), np.arange(7) * math.pi / 3)
+    # Centred on +x: bin k = [(k - 1/2) h, (k + 1/2) h), h = 2 pi / 6.
+    np.testing.assert_allclose(fixed.theta_s_edges(), (np.arange(7) - 0.5) * math.pi / 3, rtol=1e-15, atol=1e-15)
     np.testing.assert_array_equal(fixed.cos_theta_o_edges(), [0.0, 0.25, 0.5, 0.75, 1.0])
     phi = fixed.phi_o_edges()
-    assert phi[0] == 0.0 and phi[-1] == 2 * math.pi and phi.dtype == np.float64
+    # Centred on the outward radial direction: bin 0 = [-pi/3, pi/3) holds phi_o = 0.
+    assert phi[0] == -math.pi / 3 and phi[1] == pytest.approx(math.pi / 3, rel=1e-15) and phi.dtype == np.float64
+    assert phi[-1] == pytest.approx(2 * math.pi - math.pi / 3, rel=1e-15)
 
 
 # ---- sharding ------------------------------------------------------------------------------
@@ -279,7 +282,7 @@ def test_table_schemas():
     assert RADIAL_SCHEMA.names == keys + ["r_lo_mm", "r_hi_mm", "Rd_r", "Rd_r_stderr", "events"]
     assert BINS_SCHEMA.names == keys + [
         "r_lo_mm", "r_hi_mm", "theta_s_lo", "theta_s_hi", "cos_theta_o_lo", "cos_theta_o_hi",
-        "phi_o_lo", "phi_o_hi", "G", "G_stderr", "S", "S_stderr", "events"]
+        "phi_o_lo", "phi_o_hi", "G", "G_stderr", "S", "S_stderr", "S_infinite_variance", "events"]
     assert SUMMARY_SCHEMA.names == keys + [
         "R_spec", "Rd", "Rd_stderr", "Rd_beyond_rmax", "Rd_beyond_rmax_stderr", "absorbed",
         "absorbed_stderr", "truncated", "truncated_stderr", "photons", "unresolved_bins"]
@@ -288,7 +291,7 @@ def test_table_schemas():
             assert f.name in COLUMN_DOCS
             if f.name in ("estimator", "channel", "component"):
                 assert f.type == pa.string()
-            elif f.name in ("photons", "medium", "events", "unresolved_bins"):
+            elif f.name in ("photons", "medium", "events", "unresolved_bins", "S_infinite_variance"):
                 assert f.type == pa.int64()
             else:
                 assert f.type == pa.float64()

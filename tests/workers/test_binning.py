@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import torch
 
-from schema import uniform_edges
+from schema import azimuth_edges, uniform_edges
 from tests.support.stats import assert_chi2
-from tests.reference.binning import edge_index, searched
-from workers.binning import TWO_PI, BinLayout, _edge_function, outgoing_azimuth, uniform_index, wrap_angle
+from tests.reference.binning import azimuth_edge_index, edge_index, searched
+from workers.binning import TWO_PI, BinLayout, _edge_function, azimuth_index, outgoing_azimuth, uniform_index, wrap_angle
 
 # Two channels with different radial edges (mm), same bin count.
 RADIAL = np.array(
@@ -30,9 +30,9 @@ RADIAL = np.array(
 def _layout(n_theta: int = 12, n_cos: int = 8, n_phi: int = 8, radial: np.ndarray = RADIAL) -> BinLayout:
     return BinLayout(
         radial_mm=radial,
-        theta_s=np.linspace(0.0, TWO_PI, n_theta + 1),
+        theta_s=azimuth_edges(n_theta),
         cos_o=np.linspace(0.0, 1.0, n_cos + 1),
-        phi_o=np.linspace(0.0, TWO_PI, n_phi + 1),
+        phi_o=azimuth_edges(n_phi),
     )
 
 
@@ -138,7 +138,8 @@ COUNTS = [1, 2, 3, 4, 5, 6, 8, 10, 12, 16, 24, 36]
 
 @pytest.mark.parametrize("n", COUNTS)
 def test_angle_indices_at_exact_edges(n):
-    """Every bin is [lo, hi): the layout's own edge theta_k / phi_k is in bin k, 0 in the first."""
+    """Every bin is [lo, hi): the layout's own edge theta_k / phi_k is in bin k, 0 in the first
+    (the bins are centred on 0)."""
     lay = _layout(n_theta=n, n_phi=n)
     for name, edges, index in (("theta_s", lay.theta_s, searched(lay).theta_index), ("phi_o", lay.phi_o, searched(lay).phi_index)):
         assert index(torch.tensor([0.0], dtype=torch.float64)).tolist() == [0]
@@ -157,7 +158,9 @@ def test_angle_indices_just_below_edges(n):
         below = torch.nextafter(hi, torch.zeros_like(hi))
         got = index(below).tolist()
         assert got == list(range(n - 1)), f"{name}: one ulp below {edges[1:-1].tolist()} -> bins {got} ({n} bins)"
-        assert index(torch.tensor([math.nextafter(TWO_PI, 0.0)], dtype=torch.float64)).tolist() == [n - 1]
+        assert index(torch.tensor([math.nextafter(edges[-1], 0.0)], dtype=torch.float64)).tolist() == [n - 1]
+        # Just below 2 pi is just below 0: the first bin, which is centred on 0.
+        assert index(torch.tensor([math.nextafter(TWO_PI, 0.0), -1e-12], dtype=torch.float64)).tolist() == [0, 0]
 
 
 @pytest.mark.parametrize("n", COUNTS)
@@ -199,6 +202,64 @@ def test_uniform_index_interior_and_clamping():
     v = torch.tensor([-0.5, 0.0, 0.49, 0.5, 0.99, 1.0, 1.5], dtype=torch.float64)
     assert uniform_index(v, 0.0, 1.0, 2).tolist() == [0, 0, 0, 1, 1, 1, 1]
     assert uniform_index(v, 0.0, 1.0, 2).dtype == torch.int64
+
+
+# --- azimuth bins centred on the plane of incidence -----------------------------------------------
+
+
+@pytest.mark.parametrize("n", COUNTS)
+def test_azimuth_edges_are_centred_on_zero(n):
+    """Bin 0 is [-h/2, h/2), the edges span one turn from -h/2 in steps h = 2 pi / n, and the
+    mirror image [-hi, -lo) of every bin is a bin of the layout: (n - k) mod n."""
+    e = azimuth_edges(n)
+    h = TWO_PI / n
+    assert len(e) == n + 1 and e[0] == -h / 2 and e[-1] == pytest.approx(TWO_PI - h / 2, abs=1e-15)
+    np.testing.assert_allclose(np.diff(e), h, rtol=1e-12)
+    assert e[0] < 0.0 < e[1] and e[1] == pytest.approx(-e[0], rel=1e-15)
+    centres = 0.5 * (e[:-1] + e[1:])
+    for k in range(n):
+        m = (n - k) % n
+        # (mirror of bin k's centre) == bin m's centre, modulo 2 pi
+        assert math.remainder(-centres[k] - centres[m], TWO_PI) == pytest.approx(0.0, abs=1e-12), (n, k)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("n", COUNTS)
+def test_azimuth_index_is_the_searched_lookup(n, dtype):
+    """azimuth_index agrees with the searched lookup on the stored edges (angle taken modulo
+    2 pi) for random angles over several turns; on an edge and one ulp either side it may only
+    differ by the rounding of the half-bin shift, i.e. give the neighbouring bin."""
+    gen = torch.Generator().manual_seed(7)
+    edges = torch.from_numpy(azimuth_edges(n))
+    a = ((torch.rand(20_000, generator=gen, dtype=torch.float64) - 0.5) * 6 * TWO_PI).to(dtype)
+    a = torch.cat((a, torch.tensor([0.0, -0.0, math.pi, -math.pi, TWO_PI], dtype=dtype)))
+    got, want = azimuth_index(a, n), azimuth_edge_index(a, edges)
+    assert got.dtype == torch.int64
+    assert torch.equal(got, want), (n, a[got != want][:5].tolist())
+    e = edges.to(dtype)
+    near = torch.cat((e, torch.nextafter(e, e - 1), torch.nextafter(e, e + 1)))
+    diff = (azimuth_index(near, n) - azimuth_edge_index(near, edges)) % n
+    assert bool(((diff == 0) | (diff == 1) | (diff == n - 1)).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("n", COUNTS)
+def test_azimuth_index_is_mirror_symmetric(n, dtype):
+    """An angle a and its mirror -a land in bins k and (n - k) mod n; a = 0 (leaving radially,
+    or straight ahead along +x) and a = pi land in bins that are their own mirror."""
+    gen = torch.Generator().manual_seed(8)
+    a = ((torch.rand(20_000, generator=gen, dtype=torch.float64) - 0.5) * 2 * TWO_PI).to(dtype)
+    k, m = azimuth_index(a, n), azimuth_index(-a, n)
+    edges = torch.from_numpy(azimuth_edges(n)).to(dtype)
+    # Exclude angles within a few ulp of an edge (where half-open [lo, hi) breaks the tie).
+    dist = torch.remainder(a.double()[:, None] - edges.double()[None, :], TWO_PI)
+    clear = (torch.minimum(dist, TWO_PI - dist) > 1e-5).all(dim=1)
+    assert clear.sum() > 19_000
+    assert torch.equal(m[clear], (n - k[clear]) % n)
+    zero = azimuth_index(torch.tensor([0.0, -1e-7, 1e-7, math.pi], dtype=dtype), n)
+    assert zero[:3].tolist() == [0, 0, 0]
+    if n % 2 == 0:  # pi (straight back) is the centre of bin n/2, its own mirror
+        assert int(zero[3]) == n // 2
 
 
 # --- wrapping --------------------------------------------------------------------------------------

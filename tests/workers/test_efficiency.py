@@ -16,7 +16,7 @@ def test_efficiency_rows_per_spatial_bin_and_the_summary():
     info = rows.pop()
     assert info["incidence_deg"] == 45.0 and all(info[f"cpu_s_{e}"] > 0 for e in ESTIMATORS)
     assert len(rows) == 2 * 3 * 2
-    assert [(r["component"], r["theta_s_lo"]) for r in rows[:2]] == [("single", 0.0), ("single", math.pi)]
+    assert [(r["component"], r["theta_s_lo"]) for r in rows[:2]] == [("single", -math.pi / 2), ("single", math.pi / 2)]
     for r in rows:
         best = max(v for v in (r["eff_exits"], r["eff_connections"]) if math.isfinite(v))
         assert math.isclose(r["ratio_hybrid"], r["eff_hybrid"] / best)

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from schema import uniform_edges
+from schema import azimuth_edges, uniform_edges
 from tests.reference.binning import searched
-from workers.binning import BinLayout, outgoing_azimuth, wrap_angle
+from workers.binning import BinLayout, outgoing_azimuth
 from workers.harvest import ExitBins, batch_index, count_le, exit_bins
 from workers.optics import refracted_cos
 from workers.walk import EMPTY, EXITED, Lanes
@@ -53,7 +53,7 @@ STARTS = [100, 130, 161, 190]  # batches of the shard: photons [100, 130), [130,
 
 def _bins(eta: float = 1.3) -> tuple[ExitBins, BinLayout, np.ndarray]:
     radial = np.stack([np.concatenate(([0.0], np.geomspace(0.05, 2.0, N_R))), np.linspace(0.0, 3.0, N_R + 1)])
-    layout = BinLayout(radial, uniform_edges(0.0, TWO_PI, N_THETA), uniform_edges(0.0, 1.0, N_COS), uniform_edges(0.0, TWO_PI, N_PHI))
+    layout = BinLayout(radial, azimuth_edges(N_THETA), uniform_edges(0.0, 1.0, N_COS), azimuth_edges(N_PHI))
     sigma_t = np.array([2.0, 0.7, 1.3])  # three configurations: channels 0, 1, 0
     channel = np.array([0, 1, 0])
     bins = ExitBins(
@@ -99,7 +99,7 @@ def _reference(lanes: dict, layout: BinLayout, channel: np.ndarray, bins: ExitBi
     ux, uy, uz = (lanes[k].double() for k in ("ux", "uy", "uz"))
     r_mm = torch.sqrt(x * x + y * y) / bins.sigma_t[cfg]
     ir = searched(layout).radial_index(r_mm, torch.from_numpy(channel)[cfg])
-    it = searched(layout).theta_index(wrap_angle(torch.atan2(y, x)))
+    it = searched(layout).theta_index(torch.atan2(y, x))
     cos_o = refracted_cos(uz, bins.inv_eta)  # > 0: exits refract out
     ic = searched(layout).cos_index(cos_o)
     ip = searched(layout).phi_index(outgoing_azimuth(x, y, ux, uy))

@@ -54,3 +54,62 @@ def test_key_columns_carry_each_channels_coordinates(tables):
     assert all(set(r) >= {"medium", "albedo", "g", "eta"} for r in doc["results"])  # keys sorted in the file
     assert {(r["channel"], r["albedo"], r["g"], r["eta"]) for r in doc["results"]} == {
         (c.name, c.albedo, c.g, 1.4) for c in spec.channels()}
+
+
+# ---------------------------------------------------------------------------------------------
+# The grazing bin at eta = 1: the exit tally's S = w / cos_o has an infinite second moment in the
+# lowest cos(theta_o) bin (workers.output.s_infinite_variance), so no error bar is valid there.
+# ---------------------------------------------------------------------------------------------
+def _grazing_tables(tmp_path_factory, eta: float, estimator: str) -> dict[str, np.ndarray]:
+    spec = parse_spec({
+        "name": "grazing", "medium": {"sigma_a": 0.1, "sigma_s": 0.9, "g": 0.5, "eta": eta},
+        "incidence_deg": [0, 40], "photons": 1500, "shards": 2, "batches_per_shard": 2, "estimator": estimator,
+        "bins": {"radial": {"count": 3, "max_mm": 6.0}, "theta_s": {"count": 2}, "cos_theta_o": {"count": 3},
+                 "phi_o": {"count": 2}},
+    })  # fmt: skip
+    out = tmp_path_factory.mktemp(f"grazing-{estimator}-{eta}")
+    write_tables(simulate(spec, threads=1), str(out))
+    return {k: np.asarray(v) for k, v in pq.read_table(out / "bins.parquet").to_pydict().items()}
+
+
+@pytest.fixture(scope="module")
+def grazing_tables(tmp_path_factory):
+    return {(eta, est): _grazing_tables(tmp_path_factory, eta, est) for eta in (1.0, 1.3) for est in ("both", "hybrid")}
+
+
+def test_s_infinite_variance_rule():
+    from workers.output import s_infinite_variance
+
+    for comp in ("single", "multiple", "total"):
+        assert s_infinite_variance("exits", comp, 1.0, 0.0)
+        assert not s_infinite_variance("exits", comp, 1.0, 1.0 / 3.0)  # cos_o >= c_1: bounded
+        assert not s_infinite_variance("exits", comp, 1.3, 0.0)  # Fresnel: density ~ cos_o^2
+        assert not s_infinite_variance("exits", comp, 0.8, 0.0)  # cos_o >= sqrt(1 - eta^2)
+        assert not s_infinite_variance("connections", comp, 1.0, 0.0)  # T cos_in / cos_o bounded
+    assert s_infinite_variance("hybrid", "multiple", 1.0, 0.0) and s_infinite_variance("hybrid", "total", 1.0, 0.0)
+    assert not s_infinite_variance("hybrid", "single", 1.0, 0.0)  # first-vertex connections
+
+
+@pytest.mark.parametrize("estimator", ["both", "hybrid"])
+def test_grazing_bins_at_eta_1_are_flagged_with_no_error_bar(grazing_tables, estimator):
+    """bins.parquet at eta = 1: S_infinite_variance is 1 exactly in the lowest cos(theta_o) bin
+    of the exit-scored rows (exits: every component; hybrid: multiple and total), S_stderr is
+    NaN exactly there and where no event contributed, and G keeps its error bar.  The flagged
+    bins hold exits (the flag marks measured bins, not empty ones)."""
+    t = grazing_tables[1.0, estimator]
+    grazing = t["cos_theta_o_lo"] == 0.0
+    exit_scored = (t["estimator"] == "exits") | ((t["estimator"] == "hybrid") & (t["component"] != "single"))
+    want = grazing & exit_scored
+    assert t["S_infinite_variance"].dtype == np.int64
+    assert np.array_equal(t["S_infinite_variance"], want.astype(np.int64))
+    assert np.array_equal(np.isnan(t["S_stderr"]), want | (t["events"] == 0))
+    assert np.array_equal(np.isnan(t["G_stderr"]), t["events"] == 0)
+    assert t["events"][want].sum() > 100, t["events"][want]
+    assert np.all(np.isfinite(t["S"]))  # the estimate itself is kept: unbiased
+
+
+@pytest.mark.parametrize("estimator", ["both", "hybrid"])
+def test_no_bin_is_flagged_at_eta_1_3(grazing_tables, estimator):
+    t = grazing_tables[1.3, estimator]
+    assert not t["S_infinite_variance"].any()
+    assert np.array_equal(np.isnan(t["S_stderr"]), t["events"] == 0)

@@ -26,7 +26,8 @@ below -3 instead of 0.13 %: a run missing the rare grazing exits is low and has 
 fading only like 1 / ln N.  The walk shows the same: over 20 exit runs of the eta = 1 medium
 below, t of each run's grazing multiple-scattering S against the mean of the other 19 has mean
 -0.20, var 1.26, skew -0.56 (G in the same bins: -0.04, 0.85, +0.17).  Only a comparison with a
-reference sees it, not this test.
+reference sees it, not this test; the tables therefore flag those bins and give them no error bar
+(bins.parquet ``S_infinite_variance``, tests/workers/test_output.py).
 """
 
 from __future__ import annotations
