@@ -23,7 +23,6 @@ from service.api.limits import BodyLimit
 from service.api.models import API_VERSION
 from service.api.openapi import install_openapi
 from service.api.routers import datasets, health, jobs
-from service.pages import mount_pages
 from service.settings import Settings, get_settings
 
 __all__ = ["create_app", "is_loopback", "check_auth_config", "InsecureBindError", "ROUTERS"]
@@ -90,6 +89,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router)
     # The API's routes, for the 405 answer's Allow header and the OpenAPI fixes.
     app.state.api_routes = [r for router in ROUTERS for r in router.routes]
+    from service.pages import mount_pages  # here: service.pages imports the API's dependencies
+
     mount_pages(app)  # the HTML pages at / (service.pages), not part of the API's routes or OpenAPI
     install_openapi(app, read_open=effective.read_open)
     return app
