@@ -127,11 +127,13 @@ def version_page(request: Request, name: str, version: str, settings: SettingsDe
     made = {e.format: e for e in store.list_exports(record.name, record.version)}
     spec = record.meta.get("spec", {})
     rows = summary_rows(summary)
+    per_config = summary.get("run", {}).get("photons_per_config")  # a list per medium for a sweep
+    per_config = per_config[0] if isinstance(per_config, list) and per_config else per_config
     return page(request, settings, "version.html", v=record, meta=record.meta, spec=spec,
                 description=spec.get("description"), run=summary.get("run", {}), files=expected_files(record),
                 sizes={k: f.get("bytes") for k, f in record.meta.get("files", {}).items()},
                 rows=rows[:SUMMARY_ROWS], more_rows=max(0, len(rows) - SUMMARY_ROWS),
-                sweep=spec.get("sweep") is not None, figures=figures, kinds=KINDS, plots_problem=plots_problem,
+                sweep=spec.get("sweep") is not None, per_config=per_config, figures=figures, kinds=KINDS, plots_problem=plots_problem,
                 formats=[(f, EXPORT_NOTES.get(f, ""), made.get(f)) for f in FORMATS],
                 base=f"/datasets/{record.name}/versions/{record.version}")
 

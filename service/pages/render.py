@@ -35,7 +35,7 @@ HEADERS = {"Content-Security-Policy": CSP, "X-Content-Type-Options": "nosniff", 
 
 def si(x: float | None, digits: int = 3) -> str:
     """A count or rate with a k/M/G suffix: 12345 -> "12.3k" ("-" for None)."""
-    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+    if not isinstance(x, (int, float)) or isinstance(x, bool) or (isinstance(x, float) and not math.isfinite(x)):
         return "-"
     for unit, scale in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
         if abs(x) >= scale:
