@@ -9,6 +9,8 @@ import threading
 import time
 from types import SimpleNamespace
 
+import pytest
+
 from schema import parse_spec
 from service.datasets import DatasetStorage
 from service.runner import format_progress
@@ -98,6 +100,7 @@ def test_the_cli_line_says_compiling_until_photons_arrive():
     assert "compiling" not in format_progress(_progress(photons_done=10))
 
 
+@pytest.mark.slow  # one real torch.compile of a two-operation kernel (~20 s on two busy cores)
 def test_observe_compiles_reports_a_compile_and_not_a_load(tmp_path, monkeypatch):
     import torch
 
