@@ -89,6 +89,8 @@ def format_progress(p) -> str:
     phase, compiling = getattr(p, "phase", None), getattr(p, "shards_compiling", 0)
     if phase and not p.photons_done:  # nothing walked yet: say what the workers are doing
         return head + phase
+    if phase:
+        eta = "-"  # the rate counts the compile's minutes: no ETA until it is over
     line = head + (f"photons {format_si(p.photons_done)}  {format_si(p.rate_photons_per_s)}/s  ETA {eta}  "
                    f"merge {p.merge_state}, {merged}")
     return line + (f"  ({compiling} compiling: {phase})" if phase else "")
