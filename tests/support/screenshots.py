@@ -45,7 +45,7 @@ def main() -> int:
                     p.get("shards_total") and p.get("shards_done", 0) >= args.at * p["shards_total"]):
                 break
             time.sleep(0.5)
-        time.sleep(2.5)  # one more poll of the page's script
+        driver.refresh()  # the page as of now (its script polls every two seconds)
         driver.save_screenshot(str(out / "job-page.png"))
         print("job page:", job["state"], p.get("shards_done"), "/", p.get("shards_total"))
         while job["state"] not in ("succeeded", "failed", "cancelled"):
