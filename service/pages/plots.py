@@ -27,7 +27,7 @@ __all__ = ["Figure", "plot_figures", "svg_bytes", "CACHE_ARCHIVES", "KINDS"]
 
 CACHE_ARCHIVES = 8
 """Unpacked plots archives kept in memory."""
-KINDS = {"rd": "Rd(r)", "s": "S over the outgoing hemisphere", "albedo-map": "Albedo map"}
+KINDS = {"rd": "Rd(r)", "s": "S over the outgoing hemisphere", "albedo-map": "Albedo map", "other": "Other figures"}
 """Figure kinds by file-name prefix, in the order the page shows them."""
 
 _cache: OrderedDict[str, dict[str, bytes]] = OrderedDict()
@@ -45,11 +45,13 @@ class Figure:
 
 
 def _kind(stem: str) -> str:
-    return next(k for k in ("albedo-map", "rd", "s") if stem.startswith(k + "-"))
+    return next((k for k in ("albedo-map", "rd", "s") if stem.startswith(k + "-")), "other")
 
 
 def _caption(stem: str, kind: str) -> str:
     """``rd-exits-g+0.5000-eta1.3000-inc0`` -> "exits, g = 0.5, eta = 1.3, theta_i = 0 deg"."""
+    if kind == "other":
+        return stem
     parts = stem[len(kind) + 1:].split("-g")
     estimator, rest = parts[0], "-g".join(parts[1:])
     text = [estimator]

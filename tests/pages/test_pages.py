@@ -265,3 +265,15 @@ def test_the_pages_are_not_part_of_the_api_document(make_client, published):
     store, storage, _ = published
     paths = make_client(store, storage).get("/openapi.json").json()["paths"]
     assert all(p.startswith("/v1/") or p in ("/healthz", "/readyz", "/metrics") for p in paths), sorted(paths)
+
+
+@pytest.mark.parametrize("stem, kind, caption", [
+    ("rd-exits-g+0.5000-eta1.3000-inc0", "rd", "exits, g = 0.5, eta = 1.3, theta_i = 0 deg"),
+    ("s-hybrid-g-0.3000-eta1.3300-inc45", "s", "hybrid, g = -0.3, eta = 1.33, theta_i = 45 deg"),
+    ("albedo-map-exits-g+0.0000-eta1.3300", "albedo-map", "exits, g = 0, eta = 1.33"),
+    ("something-new", "other", "something-new"),
+])
+def test_figure_captions_come_from_the_plot_file_names(stem, kind, caption):
+    from service.pages.plots import _caption, _kind
+
+    assert _kind(stem) == kind and _caption(stem, kind) == caption
