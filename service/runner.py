@@ -84,9 +84,16 @@ def format_progress(p) -> str:
     merged = (f"merged {getattr(p, 'tasks_folded', 0)}/{p.shards_total}"
               + (f" (media {getattr(p, 'media_merged', 0)}/{media})" if media > 1 else ""))
     skipped = getattr(p, "shards_skipped", 0)
-    return (f"{p.state:<9} shards {p.shards_done}/{p.shards_total} ({running}"
-            + (f", skipped {skipped}" if skipped else "") + ") "
-            f"photons {format_si(p.photons_done)}  {format_si(p.rate_photons_per_s)}/s  ETA {eta}  merge {p.merge_state}, {merged}")
+    head = (f"{p.state:<9} shards {p.shards_done}/{p.shards_total} ({running}"
+            + (f", skipped {skipped}" if skipped else "") + ") ")
+    phase, compiling = getattr(p, "phase", None), getattr(p, "shards_compiling", 0)
+    if phase and not p.photons_done:  # nothing walked yet: say what the workers are doing
+        return head + phase
+    if phase:
+        eta = "-"  # the rate counts the compile's minutes: no ETA until it is over
+    line = head + (f"photons {format_si(p.photons_done)}  {format_si(p.rate_photons_per_s)}/s  ETA {eta}  "
+                   f"merge {p.merge_state}, {merged}")
+    return line + (f"  ({compiling} compiling: {phase})" if phase else "")
 
 
 def run_local(spec, *, db_url: str, storage_uri: str, data_dir: Path, workers: int,

@@ -35,7 +35,7 @@ from service.logs import configure_logging
 from service.settings import settings_or_exit
 from service.store import JobNotFound, JobStore, Lease, LeaseLost, TaskKind
 
-__all__ = ["Worker", "add_parser", "main"]
+__all__ = ["Worker", "add_parser", "main", "compile_phase"]
 
 log = logging.getLogger("bssrdf.worker")
 
@@ -63,15 +63,17 @@ class _Heartbeat(threading.Thread):
     """
 
     def __init__(self, store: JobStore, lease: Lease, lease_seconds: float, period: float, photons,
-                 last_progress=None, stall_seconds: float | None = None) -> None:
+                 last_progress=None, stall_seconds: float | None = None, phase=None) -> None:
         super().__init__(name=f"heartbeat-{lease.task_id}", daemon=True)
         self.store, self.lease, self.lease_seconds, self.period = store, lease, lease_seconds, period
         self.photons = photons  # callable -> photons done so far
         self.last_progress = last_progress  # callable -> monotonic time of the last progress report, or None
+        self.phase = phase  # callable -> what the task does besides walking ("compiling ..."), or None
         self.stall_seconds = stall_seconds
         self.lost = threading.Event()
         self.stalled = threading.Event()
         self._stop_event = threading.Event()
+        self._wake = threading.Event()
 
     def _is_stalled(self) -> bool:
         if self.stall_seconds is None or self.last_progress is None:
@@ -80,7 +82,11 @@ class _Heartbeat(threading.Thread):
         return last is not None and time.monotonic() - last > self.stall_seconds
 
     def run(self) -> None:
-        while not self._stop_event.wait(self.period):
+        while True:
+            self._wake.wait(self.period)  # a period, or sooner when poked (the phase changed)
+            self._wake.clear()
+            if self._stop_event.is_set():
+                return
             if self._is_stalled():
                 log.error("no progress: heartbeats stopped, the lease will expire and the task be redone elsewhere",
                           extra={"task": self.lease.task_id, "stall_s": self.stall_seconds})
@@ -88,7 +94,8 @@ class _Heartbeat(threading.Thread):
                 self.lost.set()
                 return
             try:
-                ok = self.store.heartbeat(self.lease, self.lease_seconds, photons=self.photons())
+                extra = {} if self.phase is None else {"phase": self.phase()}
+                ok = self.store.heartbeat(self.lease, self.lease_seconds, photons=self.photons(), **extra)
             except DBAPIError as exc:  # transient DB trouble: try again next period
                 log.warning("heartbeat failed", extra={"task": self.lease.task_id, "error": str(exc)})
                 continue
@@ -96,9 +103,20 @@ class _Heartbeat(threading.Thread):
                 self.lost.set()
                 return
 
+    def poke(self) -> None:
+        """Send a heartbeat now (with the current photons and phase), not at the next period."""
+        self._wake.set()
+
     def stop(self) -> None:
         self._stop_event.set()
+        self._wake.set()
         self.join()
+
+
+def compile_phase(kernel: str, eta: float) -> str:
+    """What a shard reports while kernel ``kernel`` compiles for a medium of index ``eta``."""
+    what = "the walk" if kernel == "walk_step" else f"the walk's {kernel} kernel"
+    return f"compiling {what} for eta = {eta:g} (first run on this machine, ~1-2 min)"
 
 
 class Worker:
@@ -190,12 +208,14 @@ class Worker:
         log.info("task claimed", extra=fields)
         photons = [0]
         last_progress: list[float | None] = [None]  # the stall clock starts at the first report (after compiling)
+        phase: list[str | None] = [None]  # "compiling ..." while a kernel compiles (reported by heartbeats)
         beat = _Heartbeat(self.store, lease, self.lease_seconds, self.heartbeat_seconds, lambda: photons[0],
-                          lambda: last_progress[0], self.stall_seconds if lease.kind == TaskKind.SHARD else None)
+                          lambda: last_progress[0], self.stall_seconds if lease.kind == TaskKind.SHARD else None,
+                          phase=lambda: phase[0])
         beat.start()
         try:
             if lease.kind == TaskKind.SHARD:
-                self._process_shard(lease, beat, photons, last_progress, fields)
+                self._process_shard(lease, beat, photons, last_progress, fields, phase)
             else:
                 self._process_merge(lease, beat, fields)
         except (LeaseLost, JobNotFound) as exc:  # JobNotFound: the job was deleted meanwhile
@@ -230,10 +250,20 @@ class Worker:
             self._specs[lease.job_id] = parse_spec(json.loads(lease.spec_json))
         return self._specs[lease.job_id]
 
+    def _eta(self, lease: Lease) -> float:
+        """The relative index of the leased shard's medium."""
+        spec = self._spec(lease)
+        return spec.media()[spec.task_of(lease.shard_index)[0]].eta
+
     def _process_shard(self, lease: Lease, beat: _Heartbeat, photons: list[int], last_progress: list,
-                       fields: dict) -> None:
+                       fields: dict, phase: list | None = None) -> None:
         """Run task ``lease.shard_index`` (shard s of medium m, schema.media), write its tally as
-        a file in the job's staging area, and commit the file's URI, size and sha256."""
+        a file in the job's staging area, and commit the file's URI, size and sha256.
+
+        While a kernel compiles (:func:`workers.kernels.observe_compiles`) the heartbeat reports
+        the phase at once (:func:`compile_phase`) and the stall clock is held: a compile is not
+        a hung walk."""
+        phase = [None] if phase is None else phase
 
         def progress(n: int) -> None:
             photons[0] += int(n)
@@ -242,6 +272,19 @@ class Worker:
                 raise _Abandon("lease lost")
             if self.stopping.is_set():
                 raise _Abandon("stopping")
+
+        held = [False]  # the stall clock was running when the compile began
+
+        def compiling(kernel: str, started: bool) -> None:
+            phase[0] = compile_phase(kernel, self._eta(lease)) if started else None
+            if started:
+                held[0], last_progress[0] = last_progress[0] is not None, None  # held while it compiles
+            elif held[0]:
+                last_progress[0] = time.monotonic()  # the compile's minutes are not a stall
+            log.info("kernel compiling" if started else "kernel compiled", extra={**fields, "kernel": kernel})
+            beat.poke()
+
+        progress.compiling = compiling  # read by _walk (a fake walk may ignore it)
 
         payload, n_photons, elapsed_s = self._walk(lease, progress)
         if beat.lost.is_set():
@@ -293,9 +336,11 @@ class Worker:
         (``service.bench_fleet`` puts an instant fake here to load the queue alone)."""
         # Deferred, not a cycle: workers.sweep imports torch (seconds), and building the `bssrdf`
         # parser imports this module; only a process that runs a shard pays for it.
+        from workers.kernels import observe_compiles
         from workers.sweep import run_task
 
-        tally = run_task(self._spec(lease), lease.shard_index, progress=progress)
+        with observe_compiles(getattr(progress, "compiling", lambda _kernel, _started: None)):
+            tally = run_task(self._spec(lease), lease.shard_index, progress=progress)
         return tally.to_bytes(), tally.photons, tally.elapsed_s
 
     def _process_merge(self, lease: Lease, beat: _Heartbeat, fields: dict) -> None:

@@ -22,6 +22,15 @@ same missing kernel one compiles it (under a file lock) and the others wait and 
 ``BSSRDF_KERNEL_CACHE=off`` compiles in-process with plain torch.compile.  An artifact that fails to load is compiled again and replaced.  A kernel
 compiled ahead of time does not share inductor's graph cache: the first use of a new kernel on a
 machine costs a full compile (one to two minutes for the 8-step walk) once.
+
+Whoever shows progress can learn that a compile is under way (a worker reports it in its
+heartbeats, so the job's page says "compiling" instead of "0 photons/s"):
+
+    with observe_compiles(lambda name, compiling: ...):   # (kernel name, True at start / False at end)
+        run_shard(...)
+
+The callback runs in the compiling thread, around the compile itself (or the wait for another
+process compiling the same artifact); loading a saved artifact is not reported.
 """
 
 from __future__ import annotations
@@ -41,7 +50,7 @@ import torch
 from . import rng
 from .engine import init_engine
 
-__all__ = ["GRAPH_MODULES", "artifact_key", "cache_dir", "compile_kernel", "source_digest"]
+__all__ = ["GRAPH_MODULES", "artifact_key", "cache_dir", "compile_kernel", "observe_compiles", "source_digest"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +58,36 @@ log = logging.getLogger(__name__)
 GRAPH_MODULES = ("walk", "connections", "hybrid", "harvest", "optics", "rng", "binning", "conventions")
 
 _compile_lock = threading.Lock()  # one compile at a time per process (threads sharing a kernel)
+_observers: list[Callable[[str, bool], None]] = []  # observe_compiles callbacks, in registration order
+
+
+@contextlib.contextmanager
+def observe_compiles(callback: Callable[[str, bool], None]):
+    """Call ``callback(kernel_name, True)`` when a kernel starts compiling and
+    ``callback(kernel_name, False)`` when it is done (or failed), while the block runs."""
+    _observers.append(callback)
+    try:
+        yield
+    finally:
+        _observers.remove(callback)
+
+
+@contextlib.contextmanager
+def _compiling(name: str):
+    """Tell the observers that kernel ``name`` is compiling for the duration of the block; an
+    observer's own error is logged, never raised into the walk."""
+    def tell(state: bool) -> None:
+        for callback in list(_observers):
+            try:
+                callback(name, state)
+            except Exception:  # noqa: BLE001 - progress reporting must not break a compile
+                log.exception("compile observer failed")
+
+    tell(True)
+    try:
+        yield
+    finally:
+        tell(False)
 
 
 def cache_dir() -> Path | None:
@@ -122,6 +161,7 @@ class _Kernel:
         self.fn, self.name, self.constants = fn, name, constants
         self.variants: list[Callable] = []
         self.direct: dict[Any, Callable] = {}
+        self.lazy: set[int] = set()  # ids of variants that compile on their first call (no artifact cache)
 
     def __call__(self, *args):
         key = (_signature(args), torch.is_grad_enabled())
@@ -143,7 +183,13 @@ class _Kernel:
         with _compile_lock:
             if self.variants is variants:  # no other thread added one meanwhile
                 self.variants = [*variants, self._obtain(args)]
-        out = self.variants[-1](*args)
+        newest = self.variants[-1]
+        if id(newest) in self.lazy:  # plain torch.compile: this first call compiles it
+            self.lazy.discard(id(newest))
+            with _compiling(self.name):
+                out = newest(*args)
+        else:
+            out = newest(*args)
         self._remember(key, self.variants[-1])
         return out
 
@@ -160,13 +206,14 @@ class _Kernel:
         compiler = torch.compile(self.fn, fullgraph=True, dynamic=False)
         directory = cache_dir()
         if directory is None or not hasattr(compiler, "aot_compile"):
+            self.lazy.add(id(compiler))
             return compiler
         path = directory / f"{self.name}-{artifact_key(self.name, self.constants, args)[:24]}.pt2"
         stamp = _stamp(path)
         if stamp is not None and (loaded := _load(path)) is not None:
             return loaded
         # One process compiles a given artifact; others wanting it meanwhile wait, then load it.
-        with _file_lock(path):
+        with _compiling(self.name), _file_lock(path):
             if _stamp(path) not in (None, stamp) and (loaded := _load(path)) is not None:
                 return loaded
             compiled = compiler.aot_compile((args, {}))

@@ -89,5 +89,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router)
     # The API's routes, for the 405 answer's Allow header and the OpenAPI fixes.
     app.state.api_routes = [r for router in ROUTERS for r in router.routes]
+    from service.pages import mount_pages  # here: service.pages imports the API's dependencies
+
+    mount_pages(app)  # the HTML pages at / (service.pages), not part of the API's routes or OpenAPI
     install_openapi(app, read_open=effective.read_open)
     return app

@@ -80,6 +80,10 @@ class JobProgressPublic(BaseModel):
     media_merged: int = Field(0, description="Media the merge is past: their tables are final.")
     eta_s: float | None = Field(description="Seconds left at the current rate: None before the first photons are "
                                 "reported and once the job failed or was cancelled; 0 once it succeeded.")
+    shards_compiling: int = Field(0, description="Running shards whose worker is compiling a kernel (the first "
+                                  "run of a kernel on a machine: one to two minutes) instead of walking.")
+    phase: str | None = Field(None, description="What such a shard reports, e.g. \"compiling the walk for eta = "
+                              "1.3 (first run on this machine, ~1-2 min)\"; null when no shard compiles.")
 
     @classmethod
     def from_record(cls, p: JobProgress) -> "JobProgressPublic":

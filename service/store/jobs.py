@@ -20,7 +20,7 @@ from service.store.tables import dataset_versions, jobs, tasks
 
 __all__ = ["JobsMixin", "SpecLike"]
 
-_COUNTS = ("done", "running", "stalled", "failed", "cancelled", "photons", "photons_done")
+_COUNTS = ("done", "running", "stalled", "failed", "cancelled", "photons", "photons_done", "compiling")
 """Columns of the shard counts in :meth:`JobsMixin._progress_statement`."""
 
 
@@ -193,10 +193,13 @@ class JobsMixin(StoreBase):
             sa.func.count().filter(t.state == TaskState.CANCELLED).label("cancelled"),
             sa.func.coalesce(sa.func.sum(t.photons), 0).label("photons"),
             sa.func.coalesce(sa.func.sum(t.photons).filter(t.state == TaskState.DONE), 0).label("photons_done"),
+            sa.func.count().filter(live, fresh, t.phase.is_not(None)).label("compiling"),
+            sa.func.max(t.phase).filter(live, fresh).label("phase"),
         ).where(t.job_id == job_id, t.kind == TaskKind.SHARD).group_by(t.job_id).subquery("shard_counts")
         merge = tasks.alias("merge_task")
         return (
-            sa.select(jobs, now.label("now"), *(counts.c[k] for k in _COUNTS), merge.c.state.label("merge_state"))
+            sa.select(jobs, now.label("now"), *(counts.c[k] for k in _COUNTS), counts.c.phase,
+                      merge.c.state.label("merge_state"))
             .select_from(jobs.outerjoin(counts, counts.c.job_id == jobs.c.id).outerjoin(
                 merge, sa.and_(merge.c.job_id == jobs.c.id, merge.c.kind == TaskKind.MERGE)))
             .where(jobs.c.id == job_id)
@@ -221,7 +224,8 @@ class JobsMixin(StoreBase):
             raise JobNotFound(job_id)
         m = job._mapping
         merge_state = m["merge_state"]
-        done, running, stalled, failed, cancelled, photons, photons_done_shards = (int(m[k] or 0) for k in _COUNTS)
+        done, running, stalled, failed, cancelled, photons, photons_done_shards, compiling = (
+            int(m[k] or 0) for k in _COUNTS)
         skipped = int(m["shards_skipped"])
         per_medium = int(json.loads(m["spec_json"]).get("shards") or m["shards"]) or 1  # tasks = media x shards
         cancelled -= skipped  # cancelled by an early stop (target met): counted apart
@@ -249,4 +253,5 @@ class JobsMixin(StoreBase):
             dataset_name=m["dataset_name"], dataset_version=m["dataset_version"],
             shards_skipped=skipped, tasks_folded=int(m["folded"]), media_total=max(1, total // per_medium),
             media_merged=int(m["folded"]) // per_medium,
+            shards_compiling=compiling, phase=m["phase"] if compiling and state not in TERMINAL_JOB_STATES else None,
         )

@@ -22,6 +22,10 @@ from service.store.tables import jobs, shard_results, tasks
 __all__ = ["QueueMixin"]
 
 
+class _Keep:
+    """The default of :meth:`QueueMixin.heartbeat`'s ``phase``: leave the stored phase as it is."""
+
+
 class QueueMixin(StoreBase):
     """Task-level operations of workers."""
 
@@ -117,6 +121,7 @@ class QueueMixin(StoreBase):
                 started_at=now,
                 not_before=None,
                 photons=0,
+                phase=None,
             )
             .returning(
                 tasks.c.id, tasks.c.lease_token, tasks.c.job_id, tasks.c.kind, tasks.c.shard_index,
@@ -132,15 +137,20 @@ class QueueMixin(StoreBase):
             tasks.c.state == TaskState.LEASED,
         )
 
-    def heartbeat(self, lease: Lease, lease_seconds: float, *, photons: int | None = None) -> bool:
+    def heartbeat(self, lease: Lease, lease_seconds: float, *, photons: int | None = None,
+                  phase: str | None | type[_Keep] = _Keep) -> bool:
         """Extend the lease by ``lease_seconds`` from now; False if the lease was lost.
 
-        ``photons`` (photons simulated so far in this attempt) feeds the progress query.
+        ``photons`` (photons simulated so far in this attempt) and ``phase`` (what the task does
+        besides walking, e.g. "compiling the walk ...", or None once it walks; cut to 200
+        characters; left as it is when not given) feed the progress query.
         """
         now = self._now()
         values = dict(lease_expires_at=now + sa.literal(float(lease_seconds), sa.Float), heartbeat_at=now)
         if photons is not None:
             values["photons"] = int(photons)
+        if phase is not _Keep:
+            values["phase"] = None if phase is None else str(phase)[:200]
         with self._tx() as conn:
             return conn.execute(sa.update(tasks).where(self._fenced(lease)).values(**values)).rowcount == 1
 

@@ -103,6 +103,8 @@ class JobProgress:
     tasks_folded: int = 0  # tasks the merge has folded, in task order (it is past them)
     media_total: int = 1  # media of the job (a sweep's grid; 1 for a single medium)
     media_merged: int = 0  # media the merge is past (their tables are final)
+    shards_compiling: int = 0  # running shards whose worker reports a phase (compiling a kernel)
+    phase: str | None = None  # one such phase ("compiling the walk for eta = 1.3 ..."), None when none
 
 
 @dataclass(frozen=True)

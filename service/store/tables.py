@@ -1,5 +1,5 @@
 """SQLAlchemy Core tables of the job store (the schema created by migrations 0001, 0002, 0003_lifecycle,
-0004_shard_files).
+0004_shard_files, 0005_task_phase).
 
 Times are seconds since the Unix epoch (float64) read from the *database* clock
 (:func:`service.store.engine.db_now`), so leases are judged by one clock for every worker host.
@@ -64,6 +64,7 @@ tasks = sa.Table(
     sa.Column("photons", sa.BigInteger, nullable=False, server_default="0"),  # done so far / in total
     sa.Column("elapsed_s", sa.Float),
     sa.Column("error", sa.Text),
+    sa.Column("phase", sa.String(200)),  # a running shard's phase besides walking ("compiling ..."), heartbeats
     sa.Index("ix_tasks_state_id", "state", "id"),
     sa.Index("ix_tasks_job_id", "job_id"),
     sa.Index("ix_tasks_job_shard", "job_id", "shard_index"),  # one task of a job (migration 0004)
