@@ -34,8 +34,15 @@ run of zeros, always goes negative next to it. So:
   node has non-negative Bernstein coefficients on every interval (f_i + d_i / 3 >= 0 and
   f_{i+1} - d_{i+1} / 3 >= 0), so the spline stays >= 0 to the last node.
 
+* a measured bin whose node would make the spline dip below 0 anywhere (a lone heavy event the
+  spline overshoots around, a lone light one, a fall steeper than the spline can follow) is
+  pooled the same way, one at a time from the inside out until no interval dips
+  (:func:`interval_minima`): of the measured nodes shaping the first dipping interval, the one
+  whose bin density stands out most (in log) from its measured neighbours'.
+
 These nodes are modelled, not measured: their ``error`` is their whole value. The mass stays
-the measured mass of the pooled bins.
+the measured mass of the pooled bins: each group (a measured bin and the pooled bins before
+it; the last also the tail) holds its mass, so rhoEff is still the sum of all bin masses.
 
 Errors. f = K M is linear in the bin masses (K = T (P B T)^-1 P with the pooling P and the
 node map T above), so the node covariance is K Sigma K^T for the bins' covariance Sigma (exit
