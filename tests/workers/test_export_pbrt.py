@@ -74,7 +74,7 @@ def test_json_and_binary_round_trip(table, source, tmp_path):
         read_pbrt(tmp_path / "bad.bin")
 
 
-def test_rho_eff_is_the_measured_diffuse_reflectance(table, walk_stats):
+def test_rho_eff_is_the_measured_diffuse_reflectance(table):
     """rhoEff (pbrt's Catmull-Rom integral of the node values) holds exactly the measured energy:
     rhoEff + rhoBeyondRmax = Rd / (1 - R_spec) to rounding (the photons beyond the last node,
     below 1e-9 here, are in the measured total only); every row's spline is >= 0, so pbrt's
