@@ -19,9 +19,11 @@ import numpy as np
 
 __all__ = [
     "find_interval",
+    "find_interval_pbrt",
     "catmull_rom_weights",
     "catmull_rom",
     "integrate_catmull_rom",
+    "bin_integral_matrix",
     "invert_catmull_rom",
     "sample_catmull_rom_2d",
     "interval_slopes",
@@ -33,6 +35,25 @@ def find_interval(nodes: np.ndarray, x) -> np.ndarray:
     """Index i in [0, n-2] with nodes[i] <= x (the last such), clamped: the interval holding x."""
     nodes = np.asarray(nodes, dtype=np.float64)
     return np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, len(nodes) - 2)
+
+
+def find_interval_pbrt(values, y) -> np.ndarray:
+    """pbrt's ``FindInterval(size, [&](i) { return values[i] <= y; })``, elementwise in y: a
+    binary search for the last i in [0, n-2] with values[i] <= y, clamped. On a monotone array
+    it is :func:`find_interval`; on a non-monotone one (an interpolated CDF with a negative
+    lobe) it lands where pbrt's sampler lands, which searchsorted does not promise."""
+    values = np.asarray(values, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    n = len(values)
+    first = np.ones(y.shape, dtype=np.int64)
+    size = np.full(y.shape, n - 2, dtype=np.int64)
+    while np.any(size > 0):
+        half = size >> 1
+        middle = np.minimum(first + half, n - 1)
+        pred = (values[middle] <= y) & (size > 0)
+        first = np.where(pred, middle + 1, first)
+        size = np.where(pred, size - (half + 1), np.where(size > 0, half, 0))
+    return np.clip(first - 1, 0, n - 2)
 
 
 def catmull_rom_weights(nodes, x: float) -> tuple[int, np.ndarray] | None:
@@ -104,6 +125,27 @@ def integrate_catmull_rom(nodes, values) -> tuple[np.ndarray, np.ndarray]:
     return cdf[..., -1], cdf
 
 
+def bin_integral_matrix(nodes, edges) -> np.ndarray:
+    """B[j, k]: the integral over bin j = [edges[j], edges[j+1]) of the spline through the k-th
+    unit vector, so that the spline through f integrates over bin j to (B f)_j. Exact (each
+    interval's cubic integrated piecewise with its antiderivative); the spline is 0 outside
+    [x_0, x_{n-1}], so a bin reaching past the last node counts only its part inside. Banded:
+    bin j sees the nodes of the intervals it overlaps and their neighbours."""
+    nodes, edges = np.asarray(nodes, dtype=np.float64), np.asarray(edges, dtype=np.float64)
+    n = len(nodes)
+    out = np.zeros((len(edges) - 1, n))
+    unit = np.eye(n)
+    for i in range(n - 1):
+        f0, f1, d0, d1 = interval_slopes(nodes, unit, i)  # each [n]: one entry per unit vector
+        a, b = nodes[i], nodes[i + 1]
+        lo, hi = np.clip(edges[:-1], a, b), np.clip(edges[1:], a, b)
+        for j in np.flatnonzero(hi > lo):
+            upper, _ = _hermite_integral((hi[j] - a) / (b - a), f0, f1, d0, d1)
+            lower, _ = _hermite_integral((lo[j] - a) / (b - a), f0, f1, d0, d1)
+            out[j] += (b - a) * (upper - lower)
+    return out
+
+
 def _hermite_integral(t, f0, f1, d0, d1):
     """(F(t), f(t)): integral from 0 to t of the Hermite cubic per unit t, and the cubic itself."""
     F = t * (f0 + t * (0.5 * d0 + t * ((-2 * d0 - d1) / 3.0 + f1 - f0 + t * (0.25 * (d0 + d1) + 0.5 * (f0 - f1)))))
@@ -165,7 +207,8 @@ def sample_catmull_rom_2d(nodes1, nodes2, values, cdf, alpha: float, u) -> tuple
     radii): ``values`` and ``cdf`` are [len(nodes1), len(nodes2)] (cdf the per-row running
     integral of :func:`integrate_catmull_rom`), both interpolated in x1 with the weights of
     :func:`catmull_rom_weights`; u in [0, 1) is scaled to the interpolated total, its interval is
-    found on the interpolated cdf and the spline's integral is inverted inside it.
+    found on the interpolated cdf by pbrt's binary search (:func:`find_interval_pbrt`, also where
+    that cdf is not monotone) and the spline's integral is inverted inside it.
 
     Returns (x2, f(x2), pdf(x2) = f / total), elementwise in u, or None if alpha is outside nodes1.
     """
@@ -180,32 +223,57 @@ def sample_catmull_rom_2d(nodes1, nodes2, values, cdf, alpha: float, u) -> tuple
     nodes2 = np.asarray(nodes2, dtype=np.float64)
     total = c_row[-1]
     target = np.asarray(u, dtype=np.float64) * total
-    i = find_interval(c_row, target)
+    i = find_interval_pbrt(c_row, target)
     f0, f1, d0, d1 = interval_slopes(nodes2, f_row, i)
     width = nodes2[i + 1] - nodes2[i]
     t, f = _solve_segment((target - c_row[i]) / width, f0, f1, d0, d1)
     return nodes2[i] + width * t, f, f / total
 
 
+def _cubic(t, a, b, c, d):
+    return ((a * t + b) * t + c) * t + d
+
+
+def _cubic_integral(t, a, b, c, d):
+    return (((a / 4.0 * t + b / 3.0) * t + c / 2.0) * t + d) * t
+
+
+def _negative_part(u, v, a, b, c, d):
+    """Integral over [u, v] of min(p, 0) for a cubic p monotone on [u, v] (elementwise): the
+    sign change, if any, is found by bisection (60 halvings: to rounding)."""
+    pu, pv = _cubic(u, a, b, c, d), _cubic(v, a, b, c, d)
+    lo, hi = u.copy(), v.copy()
+    rising = pv > pu
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        below = (_cubic(mid, a, b, c, d) < 0) == rising  # the root is above mid
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    r = 0.5 * (lo + hi)
+    whole = _cubic_integral(v, a, b, c, d) - _cubic_integral(u, a, b, c, d)
+    left = _cubic_integral(r, a, b, c, d) - _cubic_integral(u, a, b, c, d)
+    right = whole - left
+    return np.where((pu <= 0) & (pv <= 0), whole,
+                    np.where((pu >= 0) & (pv >= 0), 0.0, np.where(pu < 0, left, right)))
+
+
 def negative_mass(nodes, values) -> np.ndarray:
     """Integral of min(spline, 0) over [x_0, x_{n-1}] (<= 0): the negative lobes a Catmull-Rom
     spline of non-negative values can have where they fall steeply (pbrt's Pdf_Sr clamps them to
-    0, and its sampler never lands there). Exact: each interval's cubic is split at its real roots
-    in (0, 1) and the negative pieces integrated with the cubic's antiderivative. ``values`` may
-    have leading axes (one row per spline)."""
+    0, and its sampler never lands there). Each interval's cubic is split at the zeros of its
+    derivative into monotone pieces, each piece's sign change found by bisection and the
+    negative part integrated with the cubic's antiderivative; vectorised. ``values`` may have
+    leading axes (one row per spline)."""
     nodes, values = np.asarray(nodes, dtype=np.float64), np.asarray(values, dtype=np.float64)
-    rows = values.reshape(-1, values.shape[-1])
-    out = np.zeros(len(rows))
     i = np.arange(len(nodes) - 1)
-    width = nodes[1:] - nodes[:-1]
-    for k, row in enumerate(rows):
-        f0, f1, d0, d1 = interval_slopes(nodes, row, i)
-        # p(t) = a t^3 + b t^2 + c t + f0 (the Hermite form of the module docstring expanded)
-        a, b, c = 2 * f0 - 2 * f1 + d0 + d1, -3 * f0 + 3 * f1 - 2 * d0 - d1, d0
-        for j in range(len(i)):
-            roots = np.roots([a[j], b[j], c[j], f0[j]]) if a[j] or b[j] or c[j] else np.array([])
-            cuts = np.unique(np.concatenate([[0.0, 1.0], [r.real for r in roots if abs(r.imag) < 1e-12 and 0 < r.real < 1]]))
-            F, _ = _hermite_integral(cuts, f0[j], f1[j], d0[j], d1[j])
-            pieces = np.diff(F)
-            out[k] += width[j] * pieces[pieces < 0].sum()
-    return out.reshape(values.shape[:-1])
+    f0, f1, d0, d1 = interval_slopes(nodes, values, i)
+    # p(t) = a t^3 + b t^2 + c t + d, the Hermite form of the module docstring expanded
+    a, b, c, d = 2 * f0 - 2 * f1 + d0 + d1, -3 * f0 + 3 * f1 - 2 * d0 - d1, d0, f0
+    qa, qb = 3 * a, 2 * b
+    with np.errstate(invalid="ignore", divide="ignore"):
+        root = np.sqrt(np.maximum(qb * qb - 4 * qa * c, 0.0))
+        real = qb * qb - 4 * qa * c >= 0
+        crit = [np.where(qa != 0, (-qb + s * root) / (2 * qa), -c / qb) for s in (1.0, -1.0)]
+    crit = [np.where(real & np.isfinite(t), np.clip(t, 0.0, 1.0), 1.0) for t in crit]
+    cuts = np.sort(np.stack([np.zeros_like(a), crit[0], crit[1], np.ones_like(a)]), axis=0)
+    pieces = sum(_negative_part(cuts[k], cuts[k + 1], a, b, c, d) for k in range(3))
+    return np.sum(pieces * (nodes[1:] - nodes[:-1]), axis=-1)

@@ -135,14 +135,15 @@ def pdf_sr(table: BSSRDFTable, rho: float, r, sigma_t: float) -> np.ndarray:
 
 def sample_sr(table: BSSRDFTable, rho: float, u, sigma_t: float) -> np.ndarray:
     """``TabulatedBSSRDF::Sample_Sr``: radii [mm] drawn from the profile at rho, u uniform in
-    [0, 1) (elementwise); -1 where there is nothing to sample (sigma_t = 0 or rho outside the
-    nodes), as pbrt signals failure."""
+    [0, 1) (elementwise). As pbrt: -1 (no sample; pbrt-v3's -1, pbrt-v4's empty optional)
+    where sigma_t = 0, and 0 where rho is outside the albedo nodes (``SampleCatmullRom2D``
+    returns 0 when ``CatmullRomWeights`` fails)."""
     u = np.asarray(u, dtype=np.float64)
     if sigma_t == 0.0:
         return np.full(u.shape, -1.0)
     s = sample_catmull_rom_2d(table.rho_samples, table.radius_samples, table.profile, table.profile_cdf, rho, u)
     if s is None:
-        return np.full(u.shape, -1.0)
+        return np.zeros(u.shape)
     return s[0] / sigma_t
 
 

@@ -15,6 +15,9 @@ from workers.catmull_rom import (
     catmull_rom_weights,
     integrate_catmull_rom,
     invert_catmull_rom,
+    bin_integral_matrix,
+    find_interval,
+    find_interval_pbrt,
     negative_mass,
     sample_catmull_rom_2d,
 )
@@ -115,3 +118,58 @@ def test_negative_mass_is_the_integral_of_the_negative_lobes():
     assert negative_mass(NODES, values) < 0
     np.testing.assert_array_equal(negative_mass(NODES, np.stack([1.0 + NODES, values])),
                                   [0.0, negative_mass(NODES, values)])  # a line has none
+
+
+def test_negative_mass_of_many_random_rows_equals_quadrature():
+    """The vectorised split at the cubic's turning points (bisection inside monotone pieces) on
+    rows with steep falls, zeros and spikes: every row against fine trapezoid quadrature."""
+    rows = np.random.default_rng(4).random((12, len(NODES))) ** 4
+    rows[::2, 5:9] = 0.0
+    x = np.linspace(0, NODES[-1], 400_001)
+    expected = [np.trapezoid(np.minimum(catmull_rom(NODES, row, x), 0), x) for row in rows]
+    got = negative_mass(NODES, rows)
+    assert np.all(got <= 0) and np.min(got) < -1e-4
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-12)
+
+
+def test_bin_integral_matrix_integrates_the_spline_over_bins():
+    """(B f)_j is the spline's integral over bin j, by quadrature; bins reaching past the last
+    node count only their part inside; B's columns sum to the integration weights."""
+    edges = np.concatenate([[0.0, 0.03], np.sqrt(NODES[1:-1] * NODES[2:]), [NODES[-1] * 1.2]])
+    f = _values(3)
+    B = bin_integral_matrix(NODES, edges)
+    expected = [integrate.quad(lambda x: float(catmull_rom(NODES, f, x)), a, min(b, NODES[-1]), points=list(NODES),
+                               limit=200, epsabs=0, epsrel=1e-12)[0] for a, b in zip(edges[:-1], edges[1:])]
+    np.testing.assert_allclose(B @ f, expected, rtol=1e-10)
+    total, _ = integrate_catmull_rom(NODES, np.eye(len(NODES)))
+    np.testing.assert_allclose(B.sum(axis=0), total, rtol=1e-12)
+    assert np.all(B[np.abs(np.subtract.outer(np.arange(len(edges) - 1), np.arange(len(NODES)))) > 3] == 0)  # banded
+
+
+def _find_interval_scalar(values, y):
+    """pbrt's FindInterval written out once, scalar, as the reference."""
+    size, first = len(values) - 2, 1
+    while size > 0:
+        half = size >> 1
+        middle = first + half
+        if values[middle] <= y:
+            first, size = middle + 1, size - (half + 1)
+        else:
+            size = half
+    return min(max(first - 1, 0), len(values) - 2)
+
+
+def test_find_interval_pbrt_is_pbrts_binary_search():
+    """Equal to searchsorted on sorted arrays, and to pbrt's binary search on non-monotone ones
+    (an interpolated CDF with a dip), where the two differ."""
+    rng = np.random.default_rng(8)
+    differs = False
+    for n in (2, 3, 5, 16, 64):
+        y = rng.uniform(-0.2, 1.2, 500)
+        sorted_values = np.sort(rng.random(n))
+        np.testing.assert_array_equal(find_interval_pbrt(sorted_values, y), find_interval(sorted_values, y))
+        values = rng.random(n)
+        expected = [_find_interval_scalar(values, v) for v in y]
+        np.testing.assert_array_equal(find_interval_pbrt(values, y), expected)
+        differs |= bool(np.any(find_interval(values, y) != expected))
+    assert differs

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import OpenEXR
@@ -90,29 +91,35 @@ def test_csv_round_trip(source, tmp_path):
 
 def _exr_channels(view: str) -> set[str]:
     """The exact EXR channel names of a part of ``view`` (bins: 6 r x 3 theta_s x 2 cos_theta_o x 2 phi_o)."""
-    a, n_a = ("c", 2) if view == "r_theta_s" else ("t", 3)
-    return {f"{q}.{a}{j}.p{m}" for q in ("S", "S_stderr") for j in range(n_a) for m in range(2)}
+    a, n_a = ("cos", 2) if view == "r_theta_s" else ("thetas", 3)
+    return {f"{q}.{a}{j}.phi{m}" for q in ("S", "S_stderr") for j in range(n_a) for m in range(2)}
 
 
 def test_exr_read_back_with_openexr_equals_parquet(source, tmp_path):
-    """Every part holds exactly its channels and header attributes, and every pixel of S and of
-    S_stderr equals its Parquet bin (each bin seen once per view, NaN standard errors included)."""
+    """Every part holds exactly its channels and header attributes, its data window is the file's
+    display window (one view per file), and every pixel of S and of S_stderr equals its Parquet
+    bin (each bin seen once per view, NaN standard errors included)."""
     names = write_export("exr", source, tmp_path)
     _check_manifest(tmp_path, names, source, "exr")
     exr = sorted(n for n in names if n.endswith(".exr"))
-    assert exr == [f"arrays-{e}-m0-inc{i}.exr" for e in ("connections", "exits") for i in ("0", "45")]
+    assert exr == sorted(f"arrays-{e}-m0-inc{i}-{v}.exr" for e in ("connections", "exits") for i in ("0", "45")
+                         for v in ("r_theta_s", "r_cos_theta_o"))
     bins = source.tables["bins"]
     albedo, g = {"R": 0.9, "G": 0.95}, {"R": 0.0, "G": 0.7}
     for name in exr:
-        est, inc = name.split("-")[1], float(name.split("inc")[1][:-4])
+        est, inc, view = name.split("-")[1], float(name.split("-inc")[1].split("-")[0]), name[:-4].split("-")[-1]
         with OpenEXR.File(str(tmp_path / name), separate_channels=True) as f:
             parts = {p.name(): p for p in f.parts}
-            assert set(parts) == {f"{ch}.{comp}.{view}" for ch in ("R", "G") for comp in ("single", "multiple", "total")
-                                  for view in ("r_theta_s", "r_cos_theta_o")}
+            assert set(parts) == {f"{ch}.{comp}" for ch in ("R", "G") for comp in ("single", "multiple", "total")}
             for part_name, part in parts.items():
-                ch, comp, view = part_name.split(".")
+                ch, comp = part_name.split(".")
                 assert set(part.channels) == _exr_channels(view), part_name
+                # no channel-name token reads as a spectral channel ("c0" is a medium's default first channel)
+                assert not any(re.fullmatch(r"c\d+", tok) for chan in part.channels for tok in chan.split("."))
                 header = part.header
+                height = 3 if view == "r_theta_s" else 2  # theta_s or cos_theta_o bins; x: 6 radial bins
+                for window in ("dataWindow", "displayWindow"):
+                    np.testing.assert_array_equal(np.concatenate(header[window]), [0, 0, 5, height - 1], err_msg=window)
                 assert {"bssrdf.provenance", "bssrdf.spec", "bssrdf.key", "bssrdf.units", "bssrdf.axes",
                         "bssrdf.edges"} <= set(header), part_name
                 key = json.loads(header["bssrdf.key"])
@@ -132,7 +139,7 @@ def test_exr_read_back_with_openexr_equals_parquet(source, tmp_path):
                     for chan, pix in part.channels.items():
                         if chan.split(".")[0] != col:
                             continue
-                        a, b = (int(x[1:]) for x in chan.split(".")[1:])
+                        a, b = (int(x.lstrip("abcdefghijklmnopqrstuvwxyz")) for x in chan.split(".")[1:])
                         want = cube[:, :, a, b].T if view == "r_theta_s" else cube[:, a, :, b].T
                         assert pix.pixels.dtype == np.float32
                         np.testing.assert_array_equal(pix.pixels, want.astype(np.float32), err_msg=f"{name} {part_name} {chan}")

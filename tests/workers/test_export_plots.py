@@ -62,14 +62,19 @@ def test_figures_are_valid_and_deterministic(arrays_source, tmp_path):
     assert manifest["format"] == "plots" and set(manifest["files"]) == set(names) - {MANIFEST}
 
 
-def test_albedo_map_figure_when_albedos_share_g_and_eta(arrays_source, tmp_path):
-    """The same tables relabelled with one g: two albedos at (g, eta) = (0, 1.4) give a map."""
+def _same_g(arrays_source):
+    """The same tables relabelled with one g: both channels' albedos at (g, eta) = (0, 1.4)."""
     same_g = dict(ARRAYS_SPEC, incidence_deg=[0.0], medium=dict(ARRAYS_SPEC["medium"], g=[0.0, 0.0]))
     tables = {}
     for name, t in _only(arrays_source, estimator="exits", incidence_deg=0.0).tables.items():
         i = t.schema.get_field_index("g")
         tables[name] = t.set_column(i, t.schema.field("g"), pa.array([0.0] * t.num_rows))
-    source = dataclasses.replace(arrays_source, spec=parse_spec(same_g), tables=tables)
+    return dataclasses.replace(arrays_source, spec=parse_spec(same_g), tables=tables)
+
+
+def test_albedo_map_figure_when_albedos_share_g_and_eta(arrays_source, tmp_path):
+    """The same tables relabelled with one g: two albedos at (g, eta) = (0, 1.4) give a map."""
+    source = _same_g(arrays_source)
     names = write_export("plots", source, tmp_path)
     assert set(names) == {f"{stem}.{ext}" for stem in ("albedo-map-exits-g+0.0000-eta1.4000",
                                                        "rd-exits-g+0.0000-eta1.4000-inc0", "s-exits-g+0.0000-eta1.4000-inc0")
@@ -127,3 +132,54 @@ def test_rd_figures_draw_the_data_and_both_models_per_channel(arrays_source, tmp
                 x, y = _line(figs[stem], f"rd-dipole-{comp}-m0-{ch}")
                 want = (1 - R_SPEC) * dipole_rd(x, p["sigma_a"], p["sigma_s"] * (1 - p["g"]), ETA)
                 np.testing.assert_allclose(y, want, rtol=1e-12)
+
+
+def test_error_bars_stay_on_the_axes(arrays_source):
+    """Every error bar of every Rd figure lies inside its axes' y range (the data have bins whose
+    bar reaches 0: those end at the axis bottom), and every drawn point too."""
+    clipped = 0
+    for stem, fig in figures(_only(arrays_source, estimator="exits")):
+        if not stem.startswith("rd-"):
+            continue
+        for ax in fig.axes:
+            lo, hi = ax.get_ylim()
+            for coll in ax.collections:
+                for seg in coll.get_segments():
+                    y = np.asarray(seg)[:, 1]
+                    # rd - (rd - bottom) rounds: 1e-4 relative at the bottom of 12 decades
+                    assert np.all((y >= lo * (1 - 1e-4)) & (y <= hi * (1 + 1e-9))), (stem, y, lo, hi)
+                    clipped += bool(np.isclose(y.min(), lo, rtol=1e-4))
+            for line in ax.lines:
+                if line.get_gid() and line.get_gid().startswith("rd-measured"):
+                    y = np.asarray(line.get_ydata())
+                    assert np.all((y >= lo) & (y <= hi)), stem
+    assert clipped > 0  # the case that used to run off the axis is exercised
+
+
+def test_s_rows_share_one_colour_scale(arrays_source):
+    """All rows (here two albedos) of the S figure are drawn with the same colour norm."""
+    figs = dict(figures(_same_g(arrays_source)))
+    fig = figs["s-exits-g+0.0000-eta1.4000-inc0"]
+    norms = {(m.norm.vmin, m.norm.vmax) for ax in fig.axes for m in ax.collections if hasattr(m, "get_array")
+             and m.get_array() is not None and np.isfinite(np.asarray(m.get_array(), dtype=float)).any()}
+    assert len([ax for ax in fig.axes if ax.name == "polar"]) == 8 and len(norms) == 1, norms
+
+
+def test_albedo_map_band_is_visible_beside_large_model_errors(arrays_source):
+    """A measurement 100 times more precise than the models' errors: the +- 2 se band still takes
+    a visible share (>= 10 %) of the error panel's height."""
+    from workers.exports.albedo_map import COLUMNS, AlbedoMap
+    from workers.exports.plots import _albedo_map_figure
+
+    a = np.array([0.3, 0.6, 0.9, 0.99])
+    cols = {c: np.full(4, np.nan) for c in COLUMNS}
+    cols.update(albedo=a, rho_eff_normal=0.5 * a**2, rho_eff_normal_stderr=np.full(4, 2e-4),
+                dipole_rho_eff=0.5 * a**2 + 0.04, dipole_error=np.array([0.01, 0.03, 0.04, -0.02]),
+                burley_rho_eff=0.5 * a**2 + 0.08, burley_error=np.array([0.02, 0.05, 0.08, 0.06]))
+    fig = _albedo_map_figure(arrays_source, AlbedoMap("exits", 0.0, 1.0, cols))
+    right = fig.axes[1]
+    (band,) = [c for c in right.collections if "2 standard errors" in str(c.get_label())]
+    ys = right.transData.transform(band.get_paths()[0].vertices)[:, 1]
+    share = (ys.max() - ys.min()) / right.bbox.height
+    print(f"band height / axes height = {share:.3f}")
+    assert share >= 0.1

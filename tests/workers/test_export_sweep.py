@@ -12,7 +12,7 @@ from schema import parse_spec
 from workers.exports import write_export
 from workers.exports.albedo_map import albedo_maps
 from workers.exports.arrays import read_npz
-from workers.exports.nodes import node_values
+from workers.exports.conserving import conserving_nodes
 from workers.exports.pbrt import pbrt_tables
 from workers.exports.profiles import radial_profiles, summary_rows
 from workers.exports.source import ExportSource
@@ -52,10 +52,10 @@ def test_pbrt_table_of_a_sweep_is_its_media_datasets(sweep_and_media):
         masses, masses_se = radial_profiles(source.tables["radial"])[key].masses
         summary = summary_rows(source.tables["summary"])[key]
         entered = 1.0 - summary["R_spec"]
-        values, stderr, error = node_values(masses / entered, masses_se / entered)
-        np.testing.assert_array_equal(table.profile[m], values)
-        np.testing.assert_array_equal(table.profile_stderr[m], stderr)
-        np.testing.assert_array_equal(table.profile_node_error[m], error)
+        row = conserving_nodes(masses / entered, masses_se / entered, int(summary["photons"]))
+        np.testing.assert_array_equal(table.profile[m], row.values)
+        np.testing.assert_array_equal(table.profile_stderr[m], row.stderr)
+        np.testing.assert_array_equal(table.profile_node_error[m], row.error)
         assert table.rho_eff_measured[m] == summary["Rd"] / entered
         assert table.rho_eff_measured_stderr[m] == summary["Rd_stderr"] / entered
     assert table.meta["provenance"]["dataset"] == "sweep-pbrt"

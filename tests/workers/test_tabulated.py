@@ -78,4 +78,13 @@ def test_sr_is_world_units_of_the_profile(table):
     expected = sigma_t**2 * table.profile[70, j] / (2 * math.pi * table.radius_samples[j])
     np.testing.assert_allclose(sr(table, rho, r, sigma_t), np.maximum(expected, 0), rtol=1e-12)
     assert np.all(sr(table, rho, [-1.0, 1e6], sigma_t) == 0.0)
-    assert np.all(sample_sr(table, 1.5, [0.5], 1.0) == -1.0) and np.all(sample_sr(table, 0.5, [0.5], 0.0) == -1.0)
+    assert np.all(sample_sr(table, 0.5, [0.5], 0.0) == -1.0)  # sigma_t = 0: no sample (pbrt-v3's -1)
+
+
+@pytest.mark.parametrize("rho", [-0.1, 1.5, float("nan")])
+def test_sample_sr_outside_the_albedo_nodes_is_zero_as_pbrt(table, rho):
+    """pbrt's SampleCatmullRom2D returns 0 when CatmullRomWeights fails (rho outside the rows), so
+    Sample_Sr gives radius 0 there, not a failure value; Sr and Pdf_Sr are 0 there too."""
+    out = sample_sr(table, rho, [0.0, 0.5, 0.99], 1.0)
+    assert out.shape == (3,) and np.all(out == 0.0)
+    assert np.all(sr(table, rho, [0.1, 1.0], 1.0) == 0.0) and np.all(pdf_sr(table, rho, [0.1, 1.0], 1.0) == 0.0)

@@ -1,20 +1,26 @@
 """The ``exr`` export: OpenEXR images of S and its standard error (float32, lossless ZIP).
 
-One multi-part file per (estimator, medium, incidence angle): ``LABEL-EST-mM-incI.exr``. Its
-parts, named ``CHANNEL.COMPONENT.VIEW``, are two views of the bins' S [1/(mm^2 sr)]:
+One multi-part file per (estimator, medium, incidence angle, view):
+``LABEL-EST-mM-incI-VIEW.exr``. Its parts, named ``CHANNEL.COMPONENT`` (CHANNEL the spectral
+channel, e.g. ``R`` or ``c0``), hold one view of the bins' S [1/(mm^2 sr)]:
 
 * view ``r_theta_s``: x = radial bin, y = exit-azimuth bin theta_s; one image per outgoing
-  direction bin, EXR channels ``S.c{k}.p{m}`` and ``S_stderr.c{k}.p{m}`` (cos(theta_o) bin k,
-  phi_o bin m);
-* view ``r_cos_theta_o``: x = radial bin, y = cos(theta_o) bin; EXR channels ``S.t{t}.p{m}``
-  and ``S_stderr.t{t}.p{m}`` (theta_s bin t, phi_o bin m).
+  direction bin, EXR channels ``S.cos{k}.phi{m}`` and ``S_stderr.cos{k}.phi{m}`` (cos(theta_o)
+  bin k, phi_o bin m);
+* view ``r_cos_theta_o``: x = radial bin, y = cos(theta_o) bin; EXR channels
+  ``S.thetas{t}.phi{m}`` and ``S_stderr.thetas{t}.phi{m}`` (theta_s bin t, phi_o bin m).
+
+The bin axes are spelled out (``cos``, ``thetas``, ``phi``) so that no EXR channel name can be
+read as a spectral channel (``c0`` is the default name of a medium's first channel).
 
 Every pixel is one stored bin (no bins are combined, so each standard error is the table's;
 NaN where a bin had no event). String header attributes: ``bssrdf.provenance`` and
 ``bssrdf.spec`` (JSON), ``bssrdf.key`` (estimator, medium, incidence, channel, component,
 albedo, g, eta), ``bssrdf.units``, ``bssrdf.axes`` (what x, y and the channel names index) and
 ``bssrdf.edges`` (JSON of the bin edges in float64: r_lo_mm / r_hi_mm, theta_s, cos_theta_o,
-phi_o). All parts share the display window of the largest image (an OpenEXR multi-part rule).
+phi_o). Every part of a file has the same image size, and its data window is the display
+window (OpenEXR makes the parts of one file share the display window; the two views differ in
+height, so they are two files).
 """
 
 from __future__ import annotations
@@ -36,7 +42,8 @@ _UNITS = "S and S_stderr: 1/(mm^2 sr), per unit incident power (entry Fresnel fa
 
 def exr_images(source: ExportSource) -> dict[str, dict[str, dict[str, np.ndarray]]]:
     """file name -> part name -> EXR channel -> float32 image [y, x] (module docstring), plus
-    each part's attributes under the key ``"__attributes__"``."""
+    each part's attributes under the key ``"__attributes__"``; every part of a file has the
+    same image size."""
     grid = table_grid(source.tables["bins"], "bins")
     s, s_se = grid.values["S"], grid.values["S_stderr"]
     keys = grid.keys
@@ -47,7 +54,7 @@ def exr_images(source: ExportSource) -> dict[str, dict[str, dict[str, np.ndarray
     for e, est in enumerate(keys["estimator"]):
         for m, medium in enumerate(keys["medium"]):
             for i, inc in enumerate(keys["incidence"]):
-                parts = {}
+                parts: dict[str, dict] = {view: {} for view in VIEWS}
                 for c, ch in enumerate(keys["channel"]):
                     for k, comp in enumerate(keys["component"]):
                         cube, err = s[e, m, i, c, k], s_se[e, m, i, c, k]  # [r, theta_s, cos, phi]
@@ -64,11 +71,14 @@ def exr_images(source: ExportSource) -> dict[str, dict[str, dict[str, np.ndarray
                                                            for a in ("theta_s", "cos_theta_o", "phi_o")
                                                            for j, side in enumerate(("lo", "hi"))}}),
                         }
-                        parts[f"{ch}.{comp}.r_theta_s"] = _view(cube, err, (1, 0, 2, 3), "c", "p", attrs,
-                                                               "x: radial bin, y: theta_s bin; S.c{k}.p{m}: cos_theta_o bin k, phi_o bin m")
-                        parts[f"{ch}.{comp}.r_cos_theta_o"] = _view(cube, err, (2, 0, 1, 3), "t", "p", attrs,
-                                                                   "x: radial bin, y: cos_theta_o bin; S.t{t}.p{m}: theta_s bin t, phi_o bin m")
-                files[f"{source.label}-{est}-m{int(medium)}-inc{float(inc):g}.exr"] = parts
+                        parts["r_theta_s"][f"{ch}.{comp}"] = _view(
+                            cube, err, (1, 0, 2, 3), "cos", "phi", attrs,
+                            "x: radial bin, y: theta_s bin; S.cos{k}.phi{m}: cos_theta_o bin k, phi_o bin m")
+                        parts["r_cos_theta_o"][f"{ch}.{comp}"] = _view(
+                            cube, err, (2, 0, 1, 3), "thetas", "phi", attrs,
+                            "x: radial bin, y: cos_theta_o bin; S.thetas{t}.phi{m}: theta_s bin t, phi_o bin m")
+                for view in (v for v in VIEWS if parts[v]):
+                    files[f"{source.label}-{est}-m{int(medium)}-inc{float(inc):g}-{view}.exr"] = parts[view]
     return files
 
 
@@ -87,11 +97,11 @@ def write_exr(source: ExportSource, out_dir: str | Path) -> list[str]:
     """Write the EXR files into ``out_dir``; the file names."""
     names = []
     for name, parts in exr_images(source).items():
-        height = max(next(iter(_pixels(p).values())).shape[0] for p in parts.values())
-        width = max(next(iter(_pixels(p).values())).shape[1] for p in parts.values())
+        (height, width), = {image.shape for p in parts.values() for image in _pixels(p).values()}
         window = (np.array([0, 0], dtype=np.int32), np.array([width - 1, height - 1], dtype=np.int32))
         exr_parts = [OpenEXR.Part({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-                                   "displayWindow": window, **part["__attributes__"]}, _pixels(part), part_name)
+                                   "displayWindow": window, "dataWindow": window, **part["__attributes__"]},
+                                  _pixels(part), part_name)
                      for part_name, part in parts.items()]
         with OpenEXR.File(exr_parts) as f:
             f.write(str(Path(out_dir) / name))

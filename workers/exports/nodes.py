@@ -1,4 +1,9 @@
-"""Node values of a radial profile from the bins centred on the nodes (radial spacing "pbrt").
+"""Point values of a radial profile at pbrt's nodes from the bins centred on them (radial spacing
+"pbrt"): each node read off its own bin and its neighbours' slope.
+
+The exported table's node values are not these but the mass-keeping ones of
+workers.exports.conserving (whose spline holds every bin's mass); these point values are what
+that module compares with to state each node's error as a value of the profile.
 
 pbrt's table needs the density in r of the exitance, f(r) = 2 pi r Sr(r), *at* its radius
 nodes r_j; a Monte Carlo run measures the mass M_j = int f dr over bins. With spacing "pbrt"

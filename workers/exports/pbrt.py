@@ -9,24 +9,36 @@ requires the radial spacing ``"pbrt"`` (bins centred on the nodes). Each entry i
                     per unit power entered at normal incidence: Rd(r) / (1 - R_spec) times
                     2 pi r, exit Fresnel included (pbrt's normalisation of its table),
 
-single plus multiple scattering, from the bin masses by :func:`workers.exports.nodes.node_values`
-(bins centred on the nodes, corrected for the local power-law slope, with the estimated error
-``profileNodeError``). rhoEff and profileCDF are the Catmull-Rom integrals of the rows, as pbrt
-computes them (``IntegrateCatmullRom``), so a pbrt loader that recomputes them gets the same.
-Standard errors: ``profileStderr`` from the bins'; ``rhoEffStderr`` of the exit tally is the
-standard error of rhoEff itself, the node errors through the integration weights with the bins'
-covariance (workers.exports.rho_eff); for estimators whose bins' covariance is not stored it is
-that of the measured total Rd / (1 - R_spec), which rhoEff estimates up to the part beyond the
-last node and the spline's integration error (< 1e-3 relative on pbrt's nodes,
-tests/workers/test_tabulated.py). ``rhoEffStderrMeaning`` says which.
+single plus multiple scattering, from the bin masses by
+:func:`workers.exports.conserving.conserving_nodes`: the node values whose Catmull-Rom spline
+integrates over every bin to that bin's measured mass (bins centred on the nodes), so rhoEff and
+profileCDF, the spline's integrals as pbrt computes them (``IntegrateCatmullRom``; a pbrt loader
+that recomputes them gets the same), hold exactly the measured energy:
+
+    rhoEff + rhoBeyondRmax = rhoEffMeasured = Rd / (1 - R_spec)   (to rounding),
+
+rhoBeyondRmax being what leaves beyond the last bin edge plus the last bin's part outside the
+last node. ``profileNodeError`` states each node's remaining error as a point value of the
+profile (modelled nodes, where bins had no events: their whole value). Standard errors:
+``profileStderr`` from the node covariance (the bins' covariance through the linear solve);
+``rhoEffStderr`` of the exit tally is the standard error of rhoEff itself, sqrt(W Cov(f) W^T)
+with the bins' full covariance (one exit per photon; workers.exports.rho_eff); for estimators
+whose bins' covariance is not stored it is that of the measured total Rd / (1 - R_spec), which
+rhoEff equals up to rhoBeyondRmax. ``rhoEffStderrMeaning`` says which.
 
 Paths cut at the spec's ``max_scatter`` (albedo 1 has no other end) leave their weight out of
 the profile and rhoEff; it is reported per albedo as ``rhoTruncated`` with its standard error.
 A row without any exit (albedo 0) is all zeros with NaN standard errors (no events).
 
-As in pbrt's own diffusion tables, the Catmull-Rom spline can dip below 0 where a profile falls
-steeply (or to bins without events); pbrt's Pdf_Sr clamps there and its sampler never lands
-there, so the two differ by that mass, reported per albedo as ``profileNegativeMass``.
+Every row's spline is >= 0 (bins that would make it dip are pooled, workers.exports.conserving),
+so pbrt's Pdf_Sr and its sampler agree at the albedos of the rows; ``profileNegativeMass`` (0
+then) says so per row. Between rows pbrt interpolates the rows with Catmull-Rom weights in rho,
+some negative, and the interpolated row can dip where a neighbouring row has much more tail:
+there Pdf_Sr clamps, the CDF is not monotone and the sampler misses mass.
+``rangeNegativeMass`` reports, per albedo range [rho_i, rho_i+1], the most negative
+(negative mass / rhoEff) of the interpolated rows at RANGE_SAMPLES albedos inside it, and
+``rangeWorstRho`` where; the metadata ``interpolationWarnings`` lists the ranges beyond
+NEGLIGIBLE_NEGATIVE (workers.exports.interpolation).
 """
 
 from __future__ import annotations
@@ -37,11 +49,14 @@ import numpy as np
 
 from schema.bins import pbrt_radius_nodes
 from workers.catmull_rom import integrate_catmull_rom, negative_mass
+from workers.tabulated import BSSRDFTable
 
-from .nodes import check_pbrt_edges, node_values
+from .conserving import conserving_nodes
+from .interpolation import interpolation_warnings, range_negative_mass
+from .nodes import check_pbrt_edges
 from .pbrt_io import PbrtTable, write_pbrt_binary, write_pbrt_json
 from .profiles import radial_profiles, summary_rows
-from .rho_eff import DISJOINT_ESTIMATORS, MEANING, disjoint_stderr, rho_eff_coefficients
+from .rho_eff import DISJOINT_ESTIMATORS, MEANING
 from .source import ExportError, ExportSource
 
 __all__ = ["pbrt_tables", "write_pbrt", "NORMALISATION"]
@@ -50,9 +65,12 @@ NORMALISATION = ("per unit power entered at normal incidence (the stored tables 
                  "exit Fresnel transmission included, single + multiple scattering")
 UNITS = {"radiusSamples": "optical radius r sigma_t", "profile": "1 / optical radius (2 pi r Sr, sigma_t = 1)",
          "rhoEff": "dimensionless", "profileCDF": "dimensionless"}
-NODE_VALUES = ("bins centred on the nodes in log r (radial spacing 'pbrt'), mass / width corrected by the "
-               "local power-law slope b h / sinh(b h); profileNodeError estimates the error this adds "
-               "(workers/exports/nodes.py)")
+NODE_VALUES = ("bins centred on the nodes in log r (radial spacing 'pbrt'); node values solve B f = M: the "
+               "Catmull-Rom spline integrates over every bin to its measured mass (rhoEff keeps the measured "
+               "energy); bins without events, and bins that would make the spline dip below 0, are pooled with "
+               "their outer neighbour (nodes on a straight line between measured ones, a geometric tail with "
+               "ratio 1/4 beyond the last bin with events); profileNodeError states each node's error as a point "
+               "value of the profile (workers/exports/conserving.py)")
 
 
 def _file_stem(estimator: str, g: float, eta: float) -> str:
@@ -98,21 +116,22 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
                               "pbrt's nodes in optical radii")
         entered = 1.0 - summ["R_spec"]
         m, m_se = prof.masses
-        values, se, err = node_values(m / entered, m_se / entered)
-        columns["profile"].append(values)
-        columns["stderr"].append(se)
-        columns["error"].append(err)
+        nodes = conserving_nodes(m / entered, m_se / entered, int(summ["photons"]) if disjoint else None)
+        columns["profile"].append(nodes.values)
+        columns["stderr"].append(nodes.stderr)
+        columns["error"].append(nodes.error)
         columns["measured"].append(summ["Rd"] / entered)
         columns["measured_se"].append(summ["Rd_stderr"] / entered)
-        columns["beyond"].append(summ["Rd_beyond_rmax"] / entered)
+        columns["beyond"].append(summ["Rd_beyond_rmax"] / entered + nodes.beyond)
         columns["photons"].append(float(summ["photons"]))
         columns["truncated"].append(summ["truncated"] / entered)
         columns["truncated_se"].append(summ["truncated_stderr"] / entered)
-        columns["rho_eff_se"].append(
-            disjoint_stderr(rho_eff_coefficients(radius, m), m / entered, m_se / entered, int(summ["photons"]))
-            if disjoint else summ["Rd_stderr"] / entered)
+        columns["rho_eff_se"].append(nodes.rho_eff_stderr if disjoint else summ["Rd_stderr"] / entered)
     profile = np.stack(columns["profile"])
     rho_eff, cdf = integrate_catmull_rom(radius, profile)
+    rho = np.array([row[0] for row in rows], dtype=np.float64)
+    bssrdf = BSSRDFTable(rho, radius, profile, rho_eff, cdf)
+    range_mass, range_rho = range_negative_mass(bssrdf)
     meta = {
         "estimator": estimator,
         "units": UNITS,
@@ -120,16 +139,18 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
         "nodeValues": NODE_VALUES,
         "rhoEffStderrMeaning": MEANING["disjoint" if disjoint else "total"],
         "rhoEffMonotone": bool(np.all(np.diff(rho_eff) > 0)),
+        "interpolationWarnings": interpolation_warnings(rho, range_mass, range_rho),
         "provenance": source.provenance("pbrt"),
     }
     return PbrtTable(
-        g=g, eta=eta, rho_samples=np.array([row[0] for row in rows], dtype=np.float64), radius_samples=radius,
+        g=g, eta=eta, rho_samples=rho, radius_samples=radius,
         profile=profile, rho_eff=rho_eff, profile_cdf=cdf, profile_stderr=np.stack(columns["stderr"]),
         rho_eff_stderr=np.array(columns["rho_eff_se"]), profile_node_error=np.stack(columns["error"]),
         rho_eff_measured=np.array(columns["measured"]), rho_eff_measured_stderr=np.array(columns["measured_se"]),
         rho_beyond_rmax=np.array(columns["beyond"]), photons=np.array(columns["photons"]),
         profile_negative_mass=negative_mass(radius, profile), rho_truncated=np.array(columns["truncated"]),
-        rho_truncated_stderr=np.array(columns["truncated_se"]), meta=meta,
+        rho_truncated_stderr=np.array(columns["truncated_se"]), range_negative_mass=range_mass,
+        range_worst_rho=range_rho, meta=meta,
     )
 
 

@@ -13,14 +13,23 @@ names, arrays flat and row-major with rho outer (pbrt's ``profile[i * nRadius + 
     profileStderr, rhoEffStderr       standard errors of profile and rhoEff
     profileNodeError        estimated error of each node value from its bin (see nodes.py)
     rhoEffMeasured, rhoEffMeasuredStderr   Rd / (1 - R_spec) over all radii, measured
-    rhoBeyondRmax           measured fraction leaving beyond the last bin edge
+    rhoBeyondRmax           what rhoEff leaves out of rhoEffMeasured: the fraction leaving
+                            beyond the last bin edge (measured) plus the last bin's part
+                            outside the last node (estimated); rhoEff + rhoBeyondRmax =
+                            rhoEffMeasured
     rhoTruncated, rhoTruncatedStderr  weight still alive at the path cap (max_scatter), per
                             unit power entered: missing from profile and rhoEff (albedo 1
                             needs the cap; 0 with a NaN error where no path reached it)
-    profileNegativeMass     integral of the spline's negative lobes (<= 0): where pbrt's
-                            Pdf_Sr clamps to 0 and its sampler never lands
+    profileNegativeMass     integral of the row spline's negative lobes (<= 0): where pbrt's
+                            Pdf_Sr clamps to 0 and its sampler never lands (0: the export
+                            keeps every row >= 0)
+    rangeNegativeMass[nRho-1]  per albedo range [rho_i, rho_i+1]: the most negative negative
+                            mass / rhoEff of the rows pbrt interpolates inside it (sampled)
+    rangeWorstRho[nRho-1]   the albedo where that was found
     photons[nRho]           photons per albedo
     estimator, units, normalisation, nodeValues   text
+    interpolationWarnings   the albedo ranges whose interpolated rows dip by more than
+                            NEGLIGIBLE_NEGATIVE of rhoEff (workers/exports/interpolation.py)
     provenance              dataset, version, spec hash, code version, sha256 of the tables
 
 NaN (an unresolved bin's standard error) is written as JSON ``null``.
@@ -28,7 +37,7 @@ NaN (an unresolved bin's standard error) is written as JSON ``null``.
 Binary (``*.bin``), every number little-endian::
 
     bytes 0..7     magic b"BSSRDFTB"
-    uint32         format version (2; version 1 had no rhoTruncated arrays)
+    uint32         format version (3; version 2 had no range arrays, 1 no rhoTruncated arrays)
     uint32 uint32  nRho, nRadius
     float64 x2     g, eta
     uint32         length L of the metadata JSON (every key above that is not an array)
@@ -38,7 +47,8 @@ Binary (``*.bin``), every number little-endian::
                    profileStderr[nRho*nRadius], rhoEffStderr[nRho],
                    profileNodeError[nRho*nRadius], rhoEffMeasured[nRho],
                    rhoEffMeasuredStderr[nRho], rhoBeyondRmax[nRho], photons[nRho],
-                   profileNegativeMass[nRho], rhoTruncated[nRho], rhoTruncatedStderr[nRho]
+                   profileNegativeMass[nRho], rhoTruncated[nRho], rhoTruncatedStderr[nRho],
+                   rangeNegativeMass[nRho-1], rangeWorstRho[nRho-1]
 
 (float64 keeps every value; pbrt's Float is float32, a loader narrows.) :func:`read_pbrt` reads
 either file into a :class:`PbrtTable`; :meth:`PbrtTable.bssrdf_table` gives the arrays pbrt
@@ -61,9 +71,10 @@ from workers.tabulated import BSSRDFTable
 __all__ = ["PbrtTable", "read_pbrt", "write_pbrt_json", "write_pbrt_binary", "MAGIC", "BINARY_VERSION", "ARRAYS"]
 
 MAGIC = b"BSSRDFTB"
-BINARY_VERSION = 2
+BINARY_VERSION = 3
 
-# (JSON key, attribute, per-rho (1) or per-node (2)) in the binary's array order.
+# (JSON key, attribute, per-rho (0, 1), per-radius (-1), per-node (2) or per albedo range (3)) in the
+# binary's array order.
 ARRAYS = (
     ("rhoSamples", "rho_samples", 0), ("radiusSamples", "radius_samples", -1), ("profile", "profile", 2),
     ("rhoEff", "rho_eff", 1), ("profileCDF", "profile_cdf", 2), ("profileStderr", "profile_stderr", 2),
@@ -71,7 +82,8 @@ ARRAYS = (
     ("rhoEffMeasured", "rho_eff_measured", 1), ("rhoEffMeasuredStderr", "rho_eff_measured_stderr", 1),
     ("rhoBeyondRmax", "rho_beyond_rmax", 1), ("photons", "photons", 1),
     ("profileNegativeMass", "profile_negative_mass", 1), ("rhoTruncated", "rho_truncated", 1),
-    ("rhoTruncatedStderr", "rho_truncated_stderr", 1),
+    ("rhoTruncatedStderr", "rho_truncated_stderr", 1), ("rangeNegativeMass", "range_negative_mass", 3),
+    ("rangeWorstRho", "range_worst_rho", 3),
 )
 
 
@@ -96,6 +108,8 @@ class PbrtTable:
     profile_negative_mass: np.ndarray
     rho_truncated: np.ndarray
     rho_truncated_stderr: np.ndarray
+    range_negative_mass: np.ndarray
+    range_worst_rho: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)  # estimator, units, provenance, ...
 
     def bssrdf_table(self) -> BSSRDFTable:
@@ -136,7 +150,7 @@ def write_pbrt_binary(table: PbrtTable, path: str | Path) -> None:
 def _read_json(path: Path) -> PbrtTable:
     doc = json.loads(path.read_text(encoding="utf-8"))
     n_rho, n_r = doc.pop("nRhoSamples"), doc.pop("nRadiusSamples")
-    shapes = {0: (n_rho,), -1: (n_r,), 1: (n_rho,), 2: (n_rho, n_r)}
+    shapes = {0: (n_rho,), -1: (n_r,), 1: (n_rho,), 2: (n_rho, n_r), 3: (n_rho - 1,)}
     arrays = {attr: np.array([np.nan if x is None else x for x in doc.pop(key)], dtype=np.float64).reshape(shapes[kind])
               for key, attr, kind in ARRAYS}
     return PbrtTable(g=doc.pop("g"), eta=doc.pop("eta"), meta=doc, **arrays)
@@ -153,7 +167,7 @@ def _read_binary(path: Path) -> PbrtTable:
     (length,) = struct.unpack_from("<I", data, 36)
     meta = json.loads(data[40:40 + length].decode("utf-8"))
     offset = 40 + length + (-(40 + length) % 8)
-    shapes = {0: (n_rho,), -1: (n_r,), 1: (n_rho,), 2: (n_rho, n_r)}
+    shapes = {0: (n_rho,), -1: (n_r,), 1: (n_rho,), 2: (n_rho, n_r), 3: (n_rho - 1,)}
     arrays = {}
     for _key, attr, kind in ARRAYS:
         count = math.prod(shapes[kind])

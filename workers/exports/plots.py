@@ -7,14 +7,19 @@
   multiple and total panels) and the classical dipole (multiple and total), both per unit
   incident power (times 1 - R_spec) for the channel's sigma_a, sigma_s, g, eta, from the first
   to the last bin centre (also where few bins had events). Points are at the bins' centres
-  (geometric for r > 0, half the first edge for the first bin).
+  (geometric for r > 0, half the first edge for the first bin). The y axis holds every point
+  and its bars (at most 12 decades); a bar reaching 0, which a log axis cannot show, ends at
+  the axis bottom.
 * ``s-EST-gG-etaE-incI``: S over the outgoing hemisphere (projected: radius sin theta_o, angle
   phi_o from the outward radial direction) at four radii, for the total component, one row per
-  series; at oblique incidence for the theta_s bin holding +x (the incidence plane, forward);
-  not drawn when the bins have a single outgoing direction bin.
+  series, all on one colour scale (at most 12 decades); at oblique incidence for the theta_s bin
+  holding +x (the incidence plane, forward); not drawn when the bins have a single outgoing
+  direction bin.
 * ``albedo-map-EST-gG-etaE`` (datasets with two or more albedos at a (g, eta), e.g. sweeps):
   the albedo map of :mod:`.albedo_map` with the dipole's and Christensen-Burley's relations,
-  and their error per albedo against the measurement's error bars.
+  and their error per albedo against the measurement's +- 2 standard-error band, on a
+  symmetric-log axis linear within the band (so the band stays visible beside model errors
+  many times larger).
 
 SVGs carry no date and fixed element ids, so the same tables give the same files. Each curve of
 an Rd figure has a gid (:func:`line_gid`, the id of its SVG group): the measured points, their
@@ -86,27 +91,44 @@ def line_gid(curve: str, comp: str, grid, m: int, c: int) -> str:
     return f"rd-{curve}-{comp}-m{int(grid.keys['medium'][m])}-{grid.keys['channel'][c]}"
 
 
+def _rd_range(radial, e, i, series) -> tuple[float, float] | None:
+    """(bottom, top) of an Rd figure's y axis: every drawn point and the ends of its error bars
+    that a log axis can show (rd - se > 0), with a margin; at most 12 decades."""
+    lows, highs = [], []
+    for k in range(len(radial.keys["component"])):
+        for m, c, _a in series:
+            rd, se = radial.values["Rd_r"][e, m, i, c, k], radial.values["Rd_r_stderr"][e, m, i, c, k]
+            ok = np.isfinite(se) & (rd > 0)
+            lows += [rd[ok], (rd - se)[ok & (rd - se > 0)]]
+            highs.append((rd + se)[ok])
+    low, high = np.concatenate(lows), np.concatenate(highs)
+    if not high.size:
+        return None
+    top = high.max() * 1.5
+    return max(low.min() / 1.5, top * 1e-12), top
+
+
 def _rd_figure(source, radial, summary, e, i, series, title) -> Figure:
     fig = Figure(figsize=(11, 3.8), layout="constrained")
     axes = fig.subplots(1, 3, sharey=True)
     inc = float(radial.keys["incidence"][i])
     colours = matplotlib.colormaps["viridis"](np.linspace(0, 0.9, len(series)))
-    shown = []
+    limits = _rd_range(radial, e, i, series)
+    bottom = limits[0] if limits else 0.0
     for ax, comp in zip(axes, _COMPONENTS):
         k = list(radial.keys["component"]).index(comp)
         for colour, (m, c, _a) in zip(colours, series):
             lo, hi = radial.edges["r"][0][m, c], radial.edges["r"][1][m, c]
             rd, se = radial.values["Rd_r"][e, m, i, c, k], radial.values["Rd_r_stderr"][e, m, i, c, k]
-            ok = np.isfinite(se) & (rd > 0)
+            ok = np.isfinite(se) & (rd > 0) & (rd >= bottom)
             r = _centres(lo, hi)
-            low = np.minimum(se, rd * (1 - 1e-3))  # a log axis cannot show the bar below 0
+            low = np.minimum(se, rd - bottom)  # a bar reaching 0 (or below the axis) ends at the axis bottom
             points = ax.errorbar(r[ok], rd[ok], yerr=[low[ok], se[ok]], fmt="o", ms=2.5, lw=0.8, color=colour,
                                  label=_label(source, radial, m, c))
             gid = line_gid("measured", comp, radial, m, c)
             points.lines[0].set_gid(gid)  # the points; their bars get their own id (SVG ids are unique)
             for bars in points.lines[2]:
                 bars.set_gid(f"{gid}-stderr")
-            shown.append(rd[ok])
             if inc == 0.0:  # models over the bins' radii, drawn even where few bins had events
                 _models(ax, source, radial, summary, (e, m, i, c), comp, r, colour)
         ax.set_xscale("log")
@@ -114,10 +136,8 @@ def _rd_figure(source, radial, summary, e, i, series, title) -> Figure:
         ax.set_xlabel("r [mm]" if not source.spec.is_sweep else "r [mm] = r sigma_t")
         ax.set_title(comp)
         ax.grid(True, which="major", alpha=0.3)
-    values = np.concatenate(shown) if shown else np.array([])
-    if values.size:  # the measurement's range, at most 12 decades (models can fall much further)
-        top = values.max() * 3
-        axes[0].set_ylim(max(values.min() / 3, top * 1e-12), top)
+    if limits:  # the measurement and its bars, at most 12 decades (models can fall much further)
+        axes[0].set_ylim(*limits)
     axes[0].set_ylabel("Rd(r) [1/mm^2] per unit incident power")
     handles, labels = axes[2].get_legend_handles_labels()
     if inc == 0.0:  # the models' line styles, in black (each series draws them in its colour)
@@ -156,11 +176,15 @@ def _s_figure(source, bins, e, i, series, title) -> Figure:
     rings = np.sqrt(1.0 - np.concatenate([cos_hi[-1:], cos_lo[::-1]]) ** 2)  # sin(theta_o), increasing
     split = int(np.ceil(72 / len(phi_lo)))  # each phi_o bin drawn as `split` wedges of its one value
     phis = np.linspace(phi_lo[0], phi_hi[-1], len(phi_lo) * split + 1)
-    for row, (m, c, _a) in enumerate(series):
-        cube = bins.values["S"][e, m, i, c, k][:, 0]  # [r, cos, phi] at the first theta_s bin (holds +x)
-        values = cube[picks]
-        positive = values[np.isfinite(values) & (values > 0)]
-        norm = LogNorm(positive.min(), positive.max() * (1 + 1e-9)) if positive.size else None
+    cubes = [bins.values["S"][e, m, i, c, k][:, 0] for m, c, _a in series]  # [r, cos, phi] at theta_s bin 0 (+x)
+    shown = np.concatenate([cube[picks].ravel() for cube in cubes])
+    positive = shown[np.isfinite(shown) & (shown > 0)]
+    norm = None
+    if positive.size:  # one colour scale for every row (albedo or channel), at most 12 decades
+        top = positive.max() * (1 + 1e-9)
+        norm = LogNorm(max(positive.min(), top * 1e-12), top)
+    mesh = None
+    for row, ((m, c, _a), cube) in enumerate(zip(series, cubes)):
         for col, j in enumerate(picks):
             ax = axes[row, col]
             img = np.repeat(np.where(cube[j] > 0, cube[j], np.nan)[::-1], split, axis=1)  # [sin ring, wedge]
@@ -170,7 +194,8 @@ def _s_figure(source, bins, e, i, series, title) -> Figure:
             ax.set_title(f"r in [{lo:.3g}, {hi:.3g}) mm", fontsize=8)
             ax.set_yticklabels([])
             ax.set_xticks(np.deg2rad([0, 90, 180, 270]), ["out", "90", "in", "270"], fontsize=7)
-        fig.colorbar(mesh, ax=axes[row, -1], label=f"S [1/(mm^2 sr)]\n{_label(source, bins, m, c)}", shrink=0.8)
+        axes[row, 0].set_ylabel(_label(source, bins, m, c), labelpad=22)
+    fig.colorbar(mesh, ax=axes[:, -1], label="S [1/(mm^2 sr)], one scale for every row", shrink=0.6)
     fig.suptitle(title + "\nprojected outgoing hemisphere: radius sin(theta_o), angle phi_o from the outward radial "
                  "direction; white: no events")
     return fig
@@ -232,6 +257,9 @@ def _albedo_map_figure(source: ExportSource, m: AlbedoMap) -> Figure:
         right.plot(a, c["burley_error_diffuse"], "s--", ms=3, color="tab:orange",
                    label="Christensen-Burley - measured (diffuse)")
     right.axhline(0, color="k", lw=0.6)
+    widest = np.nanmax(band) if np.isfinite(band).any() else 0.0
+    if widest > 0:  # linear within the band, logarithmic beyond: the band keeps a visible height
+        right.set_yscale("symlog", linthresh=widest, linscale=1.5)
     right.set_xlabel("single-scattering albedo")
     right.set_ylabel("model - measured (per unit power entered)")
     right.legend(fontsize=7)

@@ -2,10 +2,10 @@
 
 rhoEff is linear in the node values, rhoEff = sum_j W_j f_j, with W_j the integral of the
 spline's j-th cardinal function (:func:`integration_weights`, what ``IntegrateCatmullRom`` sums),
-and each node value is its bin's mass times a factor, f_j = s_j M_j
-(:func:`workers.exports.nodes.node_scales`; the slope factor inside s_j is held fixed, a
-second-order neglect, as for ``profileStderr``). So rhoEff = sum_j c_j M_j with c_j = W_j s_j,
-and its variance needs the covariance of the bin masses.
+and the node values are linear in the bin masses, f = K M (workers.exports.conserving), so
+rhoEff = sum_j c_j M_j with c = W K: 1 on every bin (the spline holds each bin's mass), the
+inner fraction on the last (its part beyond the last node is left out). Its variance needs the
+covariance of the bin masses.
 
 Exit tally (``exits``): a photon leaves once, so its entries x_pj (its weight in bin j, all
 components) are non-zero in at most one bin. For such entries the per-photon second moments of
@@ -21,11 +21,8 @@ for j != k. With c_j = 1 over every bin and the part beyond r_max it is the tall
 Other estimators: the connection samples of one photon (``hybrid``: the first vertex connects
 to every bin; ``connections``: every vertex) reach many bins, and their covariance is not stored
 (only per-bin and per-total moments are). There ``rhoEffStderr`` is the standard error of the
-measured total Rd / (1 - R_spec) (formed with that covariance by the tally), which rhoEff
-estimates up to the part beyond r_max and the node error. c_j is within 0.2 % of 1 at the
-nodes in between, but not at the ends (the first interval [0, r_1] puts ~3.7 on node 1 and
-~0.5 on node 0; the weights fall towards the last node), so where the profile has much mass in
-its first or last bins the two standard errors differ.
+measured total Rd / (1 - R_spec) (formed with that covariance by the tally), which rhoEff equals
+up to the part beyond the last node (``rhoBeyondRmax``).
 """
 
 from __future__ import annotations
@@ -34,18 +31,17 @@ import numpy as np
 
 from workers.catmull_rom import integrate_catmull_rom
 
-from .nodes import node_scales
-
-__all__ = ["integration_weights", "disjoint_stderr", "rho_eff_coefficients", "DISJOINT_ESTIMATORS", "MEANING"]
+__all__ = ["integration_weights", "disjoint_stderr", "DISJOINT_ESTIMATORS", "MEANING"]
 
 DISJOINT_ESTIMATORS = ("exits",)
 """Estimators whose photons contribute to one bin at most (formula (*) is exact)."""
 
 MEANING = {
-    "disjoint": "standard error of rhoEff itself: the node values' standard errors through the Catmull-Rom "
-                "integration weights, with the bins' covariance (one exit per photon; workers/exports/rho_eff.py)",
-    "total": "standard error of the measured total Rd / (1 - R_spec), which rhoEff estimates (the bins' covariance "
-             "of this estimator is not stored; workers/exports/rho_eff.py)",
+    "disjoint": "standard error of rhoEff itself: sqrt(W Cov(f) W^T), the node covariance (the bins' covariance of "
+                "one exit per photon through the linear solve) through the Catmull-Rom integration weights "
+                "(workers/exports/rho_eff.py, workers/exports/conserving.py)",
+    "total": "standard error of the measured total Rd / (1 - R_spec), which rhoEff equals up to rhoBeyondRmax (the "
+             "bins' covariance of this estimator is not stored; workers/exports/rho_eff.py)",
 }
 """The ``rhoEffStderrMeaning`` of a table, by whether its estimator's bins are disjoint per photon."""
 
@@ -56,11 +52,6 @@ def integration_weights(nodes) -> np.ndarray:
     nodes = np.asarray(nodes, dtype=np.float64)
     total, _cdf = integrate_catmull_rom(nodes, np.eye(len(nodes)))
     return total
-
-
-def rho_eff_coefficients(nodes, masses) -> np.ndarray:
-    """c_j = W_j s_j with rhoEff = sum_j c_j M_j (bin masses M_j of one profile row)."""
-    return integration_weights(nodes) * node_scales(masses)
 
 
 def disjoint_stderr(coef, mean, stderr, photons: int) -> float:
