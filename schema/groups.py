@@ -1,0 +1,70 @@
+"""Walk groups of a sweep: which albedos share one random walk (``"walks": "shared"``).
+
+With weights and Russian roulette (implicit capture) the geometry of a photon's path does not
+depend on the single-scattering albedo: only its weight does, by a factor a per scattering
+event.  A photon walked at albedo a_w that leaves after n scatterings with weight w therefore
+also estimates, without bias, what it would contribute at any albedo a <= a_w:
+
+    w (a / a_w)^n
+
+(workers/reweight.py derives this, roulette and the path cap included).  A sweep with shared
+walks walks each *group* of albedos of one (g, eta) once, at the group's largest albedo (its
+*leader*), and tallies every member from that walk.  The groups are contiguous ranges of the
+ascending albedo axis cut at ``group_edges``: a group starts at each edge (the first albedo
+>= the edge), so with edges (e_1 < e_2 < ...) the groups are [0, e_1), [e_1, e_2), ..., [e_k, 1].
+Empty ranges are dropped.
+
+Why these edges (:data:`DEFAULT_GROUP_EDGES`): a member's variance per photon is that of its
+own direct walk or lower (the reweighted weight is the direct walk's weight a^n w_0 without the
+direct walk's roulette noise), so a group costs (the photons its hardest member needs) x (CPU
+per photon at the leader's albedo).  The CPU per photon grows steeply toward albedo 1, and the
+photons needed are set by the innermost radii for high albedos and by the far tails for low
+ones.  BENCHMARKS.md ("Table cost") measures this and the edges follow from it.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Sequence
+
+if TYPE_CHECKING:
+    from .spec import SimulationSpec
+
+__all__ = ["DEFAULT_GROUP_EDGES", "SHARED_ESTIMATORS", "albedo_groups", "walk_mode", "walk_groups"]
+
+DEFAULT_GROUP_EDGES: tuple[float, ...] = (0.5, 0.9)
+"""Albedos where a new walk group starts when a sweep does not give ``group_edges``."""
+
+SHARED_ESTIMATORS = ("exits", "hybrid")
+"""Estimators whose tallies a shared walk reweights (per photon: its exit and first vertex)."""
+
+
+def albedo_groups(albedos: Sequence[float], edges: Sequence[float]) -> list[tuple[int, int]]:
+    """Index ranges [lo, hi) of the ascending ``albedos`` cut where an albedo reaches an edge
+    (each edge starts a group at the first albedo >= edge); empty ranges dropped."""
+    cuts = sorted({sum(1 for a in albedos if a < e) for e in edges} | {0, len(albedos)})
+    return [(lo, hi) for lo, hi in zip(cuts[:-1], cuts[1:]) if hi > lo]
+
+
+def walk_mode(spec: "SimulationSpec") -> str:
+    """"shared" or "independent": the sweep's ``walks``, or, when not given, shared if the
+    estimator is one a shared walk can reweight (exits, hybrid) with weights absorption and
+    the sweep has several albedos, else independent.  A single medium: independent."""
+    sweep = spec.sweep
+    if sweep is None:
+        return "independent"
+    if sweep.walks is not None:
+        return sweep.walks
+    ok = spec.estimator in SHARED_ESTIMATORS and spec.absorption == "weights" and len(sweep.albedos()) > 1
+    return "shared" if ok else "independent"
+
+
+def walk_groups(spec: "SimulationSpec") -> list[tuple[int, ...]]:
+    """The media of each walk group in walk order, leader (largest albedo) last; one medium per
+    group with independent walks.  Groups never span a (g, eta): media are albedo-fastest."""
+    n = spec.n_media
+    if walk_mode(spec) == "independent":
+        return [(m,) for m in range(n)]
+    albedos = spec.sweep.albedos()
+    edges = spec.sweep.group_edges if spec.sweep.group_edges is not None else DEFAULT_GROUP_EDGES
+    ranges = albedo_groups(albedos, edges)
+    return [tuple(range(block + lo, block + hi)) for block in range(0, n, len(albedos)) for lo, hi in ranges]
