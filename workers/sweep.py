@@ -176,7 +176,7 @@ class JobFold:
         (``ShardTally.to_bytes`` of it)."""
         folds = self.folds if self.folds is not None else [Fold(self.spec, self.medium)]
         *members, leader = [f.state() for f in folds]
-        state = leader
+        state = ShardTally(leader.shard_index, dict(leader.stats), dict(leader.counts), leader.n_sum, leader.info)  # not the fold's own dicts
         for j, m in enumerate(members):
             state.stats.update({member_prefix(j) + k: v for k, v in m.stats.items()})
             state.counts.update({member_prefix(j) + k: v for k, v in m.counts.items()})
@@ -191,6 +191,8 @@ class JobFold:
         job.group, job.media = int(state.info.get("job_group", state.info["job_medium"])), list(state.info["media"])
         if job.done:
             job.folds = None
+        elif state.shard_index == 0:  # saved before the group's first shard: nothing to restore
+            job.folds = job._folds(job.group)
         else:
             infos = state.info.get("member_info", [])
             parts = split_group_tally(state, len(infos))

@@ -23,7 +23,7 @@ the cost of the table that meets a relative error of ``node_rel`` (1 %) in every
   total Rd (pbrt's rhoEff) each.
 
 ``--yardstick S`` (steps per CPU-second of a reference walk measured in the same minutes, e.g. a
-hand-vectorised C walk of M2 on this core) adds figures normalised to the reference speed
+hand-vectorised C walk of M2 on this core, timed in user CPU seconds) adds figures normalised to the reference speed
 ``--yardstick-ref`` (default YARDSTICK_REF): CPU-hours x S / ref, which takes out how fast the
 machine happens to run (shared machines, other CPUs).
 """
@@ -45,9 +45,11 @@ from schema.sweep import pbrt_albedos
 __all__ = ["MIN_EVENTS", "YARDSTICK_REF", "table_spec", "measure", "project", "main"]
 
 MIN_EVENTS = 30
-YARDSTICK_REF = 1.36e8
+YARDSTICK_REF = 2.3e8
 """Reference speed of the yardstick: steps per CPU-second of a hand-vectorised C walk of the M2
-medium (float32 lanes) on one core of the 2 vCPU AVX-512 EPYC machine of BENCHMARKS.md."""
+medium (float32 lanes, same physics) on one core of the 2 vCPU AVX-512 EPYC machine of
+BENCHMARKS.md on a quiet day (what this walk's 5.3e7 M2 exit steps per CPU-second at 0.23x of
+it imply).  Measure it in CPU seconds (user time), not wall time, on a shared machine."""
 TOTAL = 2
 
 

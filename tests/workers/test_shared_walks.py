@@ -196,3 +196,25 @@ def test_same_bytes_on_one_thread_and_two_processes_and_the_leader_is_its_own_jo
         single = pq.read_table(tmp_path / "single" / f"{name}.parquet")
         assert row.num_rows == single.num_rows > 0
         assert bitwise_equal(row, single.drop(["medium"])), name  # every value, every bit
+
+
+def test_group_fold_saved_and_restored_after_every_task_gives_the_same_results():
+    from tests.support.tallies import tally_digest
+    from workers.sweep import run_task, target_rule
+    from workers.tally import ShardTally
+
+    spec = sweep_spec("hybrid", "shared", 4, 600, shards=3, target={"rel_stderr": 0.05},
+                      sweep={"albedo": [0.2, 0.5, 0.7, 0.9], "g": [0.0], "eta": [1.33], "group_edges": [0.6]})
+    assert spec.walk_groups() == [(0, 1), (2, 3)]
+    tallies = [run_task(spec, t) for t in range(spec.task_count())]
+    straight, restored = JobFold(spec, target_rule(spec)), JobFold(spec, target_rule(spec))
+    got = {"straight": [], "restored": []}
+    while not straight.done:
+        t = straight.next_task
+        assert restored.next_task == t
+        for name, fold in (("straight", straight), ("restored", restored)):
+            if fold.add(t, tallies[t]) is not None:
+                got[name] += [(r.medium_index, r.n_sum, tally_digest(ShardTally(0, r.stats, r.counts, r.n_sum))) for r in fold.finished]
+        restored = JobFold.from_state(spec, ShardTally.from_bytes(restored.state().to_bytes()), target_rule(spec))
+    assert restored.done and [m for m, _, _ in got["straight"]] == [0, 1, 2, 3]
+    assert got["straight"] == got["restored"]
