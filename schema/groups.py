@@ -17,9 +17,12 @@ Empty ranges are dropped.
 Why these edges (:data:`DEFAULT_GROUP_EDGES`): a member's variance per photon is that of its
 own direct walk or lower (the reweighted weight is the direct walk's weight a^n w_0 without the
 direct walk's roulette noise), so a group costs (the photons its hardest member needs) x (CPU
-per photon at the leader's albedo).  The CPU per photon grows steeply toward albedo 1, and the
-photons needed are set by the innermost radii for high albedos and by the far tails for low
-ones.  BENCHMARKS.md ("Table cost") measures this and the edges follow from it.
+per photon at the leader's albedo, plus the members' tallies).  Measured for pbrt's table at
+g 0, eta 1.33 with the hybrid (BENCHMARKS.md, "Table cost"): every albedo >= 0.7 needs about the
+same photons (~1.7e7, set by the innermost radius node), so they all ride on the walk at the
+largest albedo for free; below 0.7 the far nodes (~9 mean free paths) need 1e8-1e9 photons,
+which a walk at albedo ~1 makes expensive (a^n spreads the weights of long paths: one group for
+all albedos projected 27x the cost of these three groups), and cheap walks at 0.3-0.7 serve.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ if TYPE_CHECKING:
 
 __all__ = ["DEFAULT_GROUP_EDGES", "SHARED_ESTIMATORS", "albedo_groups", "walk_mode", "walk_groups"]
 
-DEFAULT_GROUP_EDGES: tuple[float, ...] = (0.5, 0.9)
+DEFAULT_GROUP_EDGES: tuple[float, ...] = (0.3, 0.7)
 """Albedos where a new walk group starts when a sweep does not give ``group_edges``."""
 
 SHARED_ESTIMATORS = ("exits", "hybrid")

@@ -162,7 +162,7 @@ class SweepSpec(BaseModel):
     )
     group_edges: list[Albedo] | None = Field(
         None, description="Shared walks: albedos in [0, 1] where a new walk group starts (1..64 "
-        "distinct values, stored ascending); default (0.5, 0.9)."
+        "distinct values, stored ascending); default (0.3, 0.7)."
     )
 
     @field_validator("group_edges")

@@ -45,11 +45,11 @@ from schema.sweep import pbrt_albedos
 __all__ = ["MIN_EVENTS", "YARDSTICK_REF", "table_spec", "measure", "project", "main"]
 
 MIN_EVENTS = 30
-YARDSTICK_REF = 2.3e8
-"""Reference speed of the yardstick: steps per CPU-second of a hand-vectorised C walk of the M2
-medium (float32 lanes, same physics) on one core of the 2 vCPU AVX-512 EPYC machine of
-BENCHMARKS.md on a quiet day (what this walk's 5.3e7 M2 exit steps per CPU-second at 0.23x of
-it imply).  Measure it in CPU seconds (user time), not wall time, on a shared machine."""
+YARDSTICK_REF = 3.5e8
+"""Reference speed of the yardstick: steps per CPU-second (user time) of a hand-vectorised C walk
+of the M2 medium (float32 lanes, the same physics) on one core of the 2 vCPU AVX-512 EPYC
+machine of BENCHMARKS.md, the best of several measurements on a day the machine was shared
+(3.2-3.6e8).  Time it in CPU seconds, not wall time, on a shared machine."""
 TOTAL = 2
 
 
