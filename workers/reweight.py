@@ -83,11 +83,25 @@ class MemberTallies:
     def __len__(self) -> int:
         return len(self.accs)
 
+    def _add(self, estimator: str, row: int, size: int, parts) -> None:
+        """Add to row ``row`` of every member's linear accumulator the sum of bincounts of
+        (flat index [n], weights [J, n]) parts: one bincount over all members per part (member
+        j's entries offset by j * size), summed per member in the order of its entries."""
+        total = None
+        for flat, w in parts:
+            idx = (np.arange(len(self.accs))[:, None] * size + flat[None, :]).ravel()
+            b = np.bincount(idx, weights=w.ravel(), minlength=len(self.accs) * size).reshape(len(self.accs), size)
+            total = b if total is None else total + b
+        for acc, t in zip(self.accs, total):
+            acc.linear[estimator][row] += t
+
     def add_exits(self, flat: np.ndarray, g: np.ndarray, s: np.ndarray, nscat: np.ndarray) -> None:
         """The exit tally's entries of one block, each member's weighted by ratio ** nscat."""
         f = member_factors(self.ratios, nscat)
-        for acc, fj in zip(self.accs, f):
-            acc.add_exits("exits", flat, g * fj, s * fj)
+        gm, sm = g[None, :] * f, s[None, :] * f
+        size = self.accs[0].linear["exits"].shape[1]
+        for row, w in enumerate((gm, gm * gm, sm, sm * sm, (gm != 0.0).astype(np.float64))):
+            self._add("exits", row, size, [(flat, w)])
 
     def add_hybrid(self, flat2: np.ndarray, g: np.ndarray, s: np.ndarray, key: np.ndarray, nscat: np.ndarray) -> None:
         """The hybrid's entries of one block ([P, E]: E - 1 first-vertex samples, then the
@@ -108,28 +122,32 @@ class MemberTallies:
         for j in range(e - 2):
             same = key[..., j + 1 : -1] == key[..., j : j + 1]
             cross_ss[..., j] = np.sum(np.where(same, single[..., j + 1 :], 0.0), axis=-1)
-        q_ss = single * (single + 2.0 * cross_ss)
-        q_se = np.sum(np.where(same_ex, single, 0.0), axis=-1) * ex  # [8, P]: sum_j x_j x_exit over shared keys
-        q_ee = ex * ex
-        size = None
+        q_ss = (single * (single + 2.0 * cross_ss)).reshape(-1)
+        q_se = (np.sum(np.where(same_ex, single, 0.0), axis=-1) * ex).reshape(-1)  # sum_j x_j x_exit over shared keys
+        q_ee = (ex * ex).reshape(-1)
+        r = self.ratios[:, None]
         f = member_factors(self.ratios, nscat)  # [J, P]
-        flat_single = flat2[:, :-1].reshape(-1)
-        flat_ex = flat2[:, -1]
+        f8 = np.tile(f, (1, 8))  # [J, 8 P]: the factor of each (key set, photon)
+        flat_single, flat_ex = flat2[:, :-1].reshape(-1), flat2[:, -1]
+        gs, ss_ = g[:, :-1].reshape(-1)[None, :] * r, s[:, :-1].reshape(-1)[None, :] * r
+        ge, se = g[None, :, -1] * f, s[None, :, -1] * f
+        size = self.accs[0].linear["hybrid"].shape[1]
+        events = lambda x: (x != 0.0).astype(np.float64)  # noqa: E731
+        for row, ws, we in ((0, gs, ge), (2, ss_, se), (4, events(gs), events(ge))):
+            self._add("hybrid", row, size, [(flat_single, ws), (flat_ex, we)])
+        n_sq = int(self.accs[0].layout.square_offsets[-1])
         key_s, key_e = key[..., :-1].reshape(-1), key[..., -1].reshape(-1)
-        for acc, r, fj in zip(self.accs, self.ratios, f):
-            size = size or acc.linear["hybrid"].shape[1]
-            lin = acc.linear["hybrid"]
-            gs, ss_ = g[:, :-1].reshape(-1) * r, s[:, :-1].reshape(-1) * r
-            ge, se = g[:, -1] * fj, s[:, -1] * fj
-            for row, ws, we in ((0, gs, ge), (2, ss_, se), (4, (gs != 0.0).astype(np.float64), (ge != 0.0).astype(np.float64))):
-                lin[row] += np.bincount(flat_single, weights=ws, minlength=size) + np.bincount(flat_ex, weights=we, minlength=size)
-            n_sq = int(acc.layout.square_offsets[-1])
-            sq = (np.bincount(key_s, weights=(q_ss * (r * r)).reshape(-1), minlength=n_sq)
-                  + np.bincount(key_e, weights=(q_se * (2.0 * r * fj) + q_ee * (fj * fj)).reshape(-1), minlength=n_sq))
+        parts = [(key_s, q_ss[None, :] * (r * r)), (key_e, q_se[None, :] * (2.0 * r * f8) + q_ee[None, :] * (f8 * f8))]
+        total = None
+        for k, w in parts:
+            idx = (np.arange(len(self.accs))[:, None] * n_sq + k[None, :]).ravel()
+            b = np.bincount(idx, weights=w.ravel(), minlength=len(self.accs) * n_sq).reshape(len(self.accs), n_sq)
+            total = b if total is None else total + b
+        for acc, sq in zip(self.accs, total):
             if "hybrid" in acc.squares:
                 acc.squares["hybrid"] += sq
             else:
-                acc.squares["hybrid"] = sq
+                acc.squares["hybrid"] = sq.copy()
 
     def add_walk(self, cfg: np.ndarray, status_exit: np.ndarray, status_trunc: np.ndarray, w: np.ndarray, nscat: np.ndarray) -> None:
         """Walk totals of finished photons: truncated weight w r^n of truncated photons, and the
