@@ -155,3 +155,16 @@ def test_shared_walks_through_the_service_give_the_simulate_bytes(tmp_path):
     store, _storage, job, got = run_sweep(url, str(tmp_path / "data"), tmp_path / "logs", 2, spec=spec)
     assert got == {name: (out / name).read_bytes() for name in FILES}
     assert store.progress(job.id).shards_total == 6
+
+
+def test_progress_counts_media_of_shared_walk_groups():
+    """A job's task rows are walk groups x shards: progress reports media, not groups."""
+    import json
+
+    from service.store.jobs import _media_counts
+
+    spec = shared_spec()  # 2 groups of 2 media, 3 shards
+    doc = json.dumps(spec.model_dump(mode="json"))
+    assert _media_counts(doc, 0, 6, 3) == {"media_total": 4, "media_merged": 0}
+    assert _media_counts(doc, 3, 6, 3) == {"media_total": 4, "media_merged": 2}
+    assert _media_counts(doc, 6, 6, 3) == {"media_total": 4, "media_merged": 4}
