@@ -14,9 +14,9 @@ ascending albedo axis cut at ``group_edges``: a group starts at each edge (the f
 >= the edge), so with edges (e_1 < e_2 < ...) the groups are [0, e_1), [e_1, e_2), ..., [e_k, 1].
 Empty ranges are dropped.
 
-Why these edges (:data:`DEFAULT_GROUP_EDGES`): a member's variance per photon is that of its
-own direct walk or lower (the reweighted weight is the direct walk's weight a^n w_0 without the
-direct walk's roulette noise), so a group costs (the photons its hardest member needs) x (CPU
+Why these edges (:data:`DEFAULT_GROUP_EDGES`): a member's variance per photon is about that of
+its own direct walk (the reweighted weight is the direct walk's weight a^n w_0 with less roulette
+noise; far nodes of low albedos are the exception when a_w is much larger), so a group costs (the photons its hardest member needs) x (CPU
 per photon at the leader's albedo, plus the members' tallies).  Measured for pbrt's table at
 g 0, eta 1.33 with the hybrid (BENCHMARKS.md, "Table cost"): every albedo >= 0.7 needs about the
 same photons (~1.7e7, set by the innermost radius node), so they all ride on the walk at the
