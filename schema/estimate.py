@@ -91,7 +91,10 @@ def seconds_per_step(spec: SimulationSpec, speed: float = 1.0) -> float:
 
 
 def job_photons(spec: SimulationSpec) -> int:
-    """Photons the whole job walks: photons x incidence angles x channels, summed over its media."""
+    """Photons the whole job walks: photons x incidence angles x channels, summed over its walks
+    (the media, or with shared walks one per walk group: schema.groups)."""
+    if spec.walk_mode() == "shared":
+        return spec.photons * len(spec.incidence_deg) * len(spec.walk_groups())
     return spec.photons * len(spec.incidence_deg) * sum(len(m.albedo) for m in spec.media())
 
 

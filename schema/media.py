@@ -4,16 +4,20 @@ A spec measures one medium (``"medium"``) or a grid of them (``"sweep"``,
 :mod:`schema.sweep`). Either way the job is a list of media, each with an index (0 for a single
 medium), coordinates per channel (albedo, g, eta: a sweep medium has one channel) and its own
 single-medium :class:`SimulationSpec`: the same spec with ``"medium"`` in place of ``"sweep"``.
-A sweep's entry is that single-medium job bit for bit: each medium's shards are exactly its own
-spec's shards (same photons, batches and random streams: the streams are keyed by the seed and
-the medium's coefficients, never by its index in the sweep).
+With independent walks a sweep's entry is that single-medium job bit for bit: each medium's
+shards are exactly its own spec's shards (same photons, batches and random streams: the streams
+are keyed by the seed and the medium's coefficients, never by its index in the sweep).  With
+shared walks this holds for each group's leader; the other members are its walk reweighted.
 
-Tasks: a job of M media and S shards per medium has M * S shard tasks, medium-major:
+Tasks: the media are walked in G *walk groups* (:mod:`schema.groups`: one medium per group
+with independent walks, a range of albedos sharing one walk with shared walks); a job of G
+groups and S shards per medium has G * S shard tasks, group-major:
 
-    task t  <->  (medium m, shard s)   with   t = m S + s,   0 <= s < S,
+    task t  <->  (group k, shard s)   with   t = k S + s,   0 <= s < S,
 
 so a single-medium job's task index is its shard index, and a worker running tasks in order
-finishes one medium before the next (the merge folds them in that order).
+finishes one group before the next (the merge folds them in that order).  Shard s of a group
+is shard s of its leader's own spec, tallied for every member.
 """
 
 from __future__ import annotations
@@ -74,23 +78,24 @@ def medium_spec(spec: "SimulationSpec", index: int) -> "SimulationSpec":
 
 
 def task_count(spec: "SimulationSpec") -> int:
-    """Shard tasks of the job: media * shards."""
-    return spec.n_media * spec.shards
+    """Shard tasks of the job: walk groups * shards (media * shards with independent walks)."""
+    return len(spec.walk_groups()) * spec.shards
 
 
 def task_of(spec: "SimulationSpec", task: int) -> tuple[int, int]:
-    """(medium, shard) of task index ``task`` = medium * shards + shard; ShardIndexError if
-    ``task`` is not in [0, media * shards)."""
+    """(walk group, shard) of task index ``task`` = group * shards + shard (the group is the
+    medium with independent walks); ShardIndexError if ``task`` is not in [0, groups * shards)."""
     n = task_count(spec)
     if not (isinstance(task, int) and 0 <= task < n):
         raise ShardIndexError(f"task index must be in the allowed range [0, {n}); received {task!r}")
     return divmod(task, spec.shards)
 
 
-def task_index(spec: "SimulationSpec", medium: int, shard: int) -> int:
-    """Task index of (medium, shard): medium * shards + shard (both range-checked)."""
-    if not (isinstance(medium, int) and 0 <= medium < spec.n_media):
-        raise ShardIndexError(f"medium index must be in the allowed range [0, {spec.n_media}); received {medium!r}")
+def task_index(spec: "SimulationSpec", group: int, shard: int) -> int:
+    """Task index of (walk group, shard): group * shards + shard (both range-checked)."""
+    n_groups = len(spec.walk_groups())
+    if not (isinstance(group, int) and 0 <= group < n_groups):
+        raise ShardIndexError(f"walk group index must be in the allowed range [0, {n_groups}); received {group!r}")
     if not (isinstance(shard, int) and 0 <= shard < spec.shards):
         raise ShardIndexError(f"shard_index must be in the allowed range [0, {spec.shards}); received {shard!r}")
-    return medium * spec.shards + shard
+    return group * spec.shards + shard

@@ -12,7 +12,8 @@ plus the walk's absorbed and truncated weights [c] (once), so
 
     payload = 3 * 8 * (n_est * c * 3 * ((n_r + 1) * (2 n_theta n_cos n_phi + 1) + 1) + 2 c)  bytes
 
-before compression (the file is the compressed npz of those arrays; the merge holds them
+before compression, times the members of the largest walk group of a sweep with shared walks
+(schema.groups: one task tallies every albedo of its group) (the file is the compressed npz of those arrays; the merge holds them
 uncompressed, one shard and one accumulator). Shards do not shrink it: every shard tallies
 every bin. The dataset's tables have, per estimator, medium, configuration and component,
 n_r radial rows, n_r n_theta n_cos n_phi bins rows and one summary row; their size before
@@ -68,6 +69,7 @@ def estimate_sizes(spec: SimulationSpec) -> SizeEstimate:
     c = n_angles * len(names)
     per_estimator = c * 3 * ((n_r + 1) * (2 * n_t * n_c * n_p + 1) + 1)
     payload = 4 * 8 * (len(est) * per_estimator + 2 * c) + 16 * (len(est) + 1)
+    payload *= max(len(g) for g in spec.walk_groups())  # a shared walk's task tallies every member of its group
     keys = len(est) * spec.n_media * c * 3  # (estimator, medium, configuration, component)
     channel_chars = sum(map(len, names)) / len(names)
     est_chars = sum(map(len, est)) / len(est)

@@ -41,8 +41,10 @@ from .bins import (
     radial_edges,
     uniform_edges,
 )
+from .groups import SHARED_ESTIMATORS
 from .constraints import Interval
 from .errors import ShardIndexError, SpecError
+from . import groups as _groups
 from . import media as _media
 from .medium import ChannelOptics, MediumSpec
 from .names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
@@ -138,6 +140,21 @@ class SimulationSpec(BaseModel):
                     'give exactly one of "medium" (one medium) or "sweep" (a grid of media); '
                     "received {received}", {"received": " and ".join(given) or "neither"})
         return data
+
+    @model_validator(mode="after")
+    def _shared_walks_need_reweightable_tallies(self) -> SimulationSpec:
+        """A sweep's shared walks reweight each photon's exit and first vertex: only the exits
+        and hybrid estimators with weights absorption can be reweighted (schema.groups)."""
+        sweep = self.sweep
+        if sweep is not None and sweep.walks == "shared":
+            if self.estimator not in SHARED_ESTIMATORS or self.absorption != "weights":
+                raise PydanticCustomError(
+                    "shared_walks",
+                    'sweep.walks "shared" needs estimator "exits" or "hybrid" and absorption '
+                    '"weights"; received estimator {estimator}, absorption {absorption}: '
+                    'set "walks": "independent" for this estimator or absorption',
+                    {"estimator": self.estimator, "absorption": self.absorption})
+        return self
 
     @field_validator("incidence_deg")
     @classmethod
@@ -267,17 +284,25 @@ class SimulationSpec(BaseModel):
         """Medium ``index``'s own single-medium spec (:func:`schema.media.medium_spec`)."""
         return _media.medium_spec(self, index)
 
+    def walk_groups(self) -> list[tuple[int, ...]]:
+        """The media walked together, leader last (:func:`schema.groups.walk_groups`)."""
+        return _groups.walk_groups(self)
+
+    def walk_mode(self) -> str:
+        """"shared" or "independent" walks (:func:`schema.groups.walk_mode`)."""
+        return _groups.walk_mode(self)
+
     def task_count(self) -> int:
-        """Shard tasks of the job: media * shards."""
+        """Shard tasks of the job: walk groups * shards (media * shards with independent walks)."""
         return _media.task_count(self)
 
     def task_of(self, task: int) -> tuple[int, int]:
-        """(medium, shard) of a task index t = medium * shards + shard."""
+        """(walk group, shard) of a task index t = group * shards + shard."""
         return _media.task_of(self, task)
 
-    def task_index(self, medium: int, shard: int) -> int:
-        """Task index of (medium, shard)."""
-        return _media.task_index(self, medium, shard)
+    def task_index(self, group: int, shard: int) -> int:
+        """Task index of (walk group, shard)."""
+        return _media.task_index(self, group, shard)
 
     def theta_s_count(self) -> int:
         """theta_s bin count, "auto" resolved: 1 if every incidence angle is 0, else 12."""

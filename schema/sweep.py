@@ -153,6 +153,23 @@ class SweepSpec(BaseModel):
         description=f"Relative indices of refraction in (0, 4], 1..{MAX_AXIS} distinct values."
     )
 
+    walks: Literal["shared", "independent"] | None = Field(
+        None, description='"shared": each group of albedos (see group_edges) is walked once, at '
+        'its largest albedo, and every albedo of the group is tallied from that walk by '
+        'reweighting (schema/groups.py); "independent": every albedo has its own walk (each row '
+        'equals the single-medium job bit for bit). Default: shared for the exits and hybrid '
+        'estimators with weights absorption, else independent.'
+    )
+    group_edges: list[Albedo] | None = Field(
+        None, description="Shared walks: albedos in [0, 1] where a new walk group starts (1..64 "
+        "distinct values, stored ascending); default (0.3, 0.7)."
+    )
+
+    @field_validator("group_edges")
+    @classmethod
+    def _group_edges(cls, v: list[float] | None) -> list[float] | None:
+        return None if v is None else _axis(v, "group_edges", MAX_AXIS)
+
     @field_validator("albedo")
     @classmethod
     def _albedo_axis(cls, v: list[float] | AlbedoGrid) -> list[float] | AlbedoGrid:

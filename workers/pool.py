@@ -65,10 +65,10 @@ def _report(n: int) -> None:
     _progress_queue.put(n)
 
 
-def _run(spec_doc: dict, index: int, report: bool) -> bytes:
+def _run(spec_doc: dict, index: int, report: bool, members: tuple[float, ...] = ()) -> bytes:
     spec = parse_spec(spec_doc)
     c0 = time.thread_time()
-    tally = run_shard(spec, index, progress=_report if report else None)
+    tally = run_shard(spec, index, progress=_report if report else None, members=members)
     tally.info["cpu_s"] = time.thread_time() - c0
     tally.info["maxrss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return tally.to_bytes()
@@ -122,15 +122,16 @@ class ShardPool:
 
     def imap(self, items: Iterable[tuple[SimulationSpec, int]], progress: Callable[[int], None] | None = None,
              window: int | None = None) -> Iterator[ShardTally]:
-        """run_shard(spec, index) of each item, in item order, with at most ``window`` (default
+        """run_shard(spec, index[, members=...]) of each item (spec, index) or (spec, index,
+        member albedos), in item order, with at most ``window`` (default
         two per process) submitted ahead of the one being yielded (see :func:`in_order`)."""
         last: list = [None, None]  # the last spec and its JSON form (a sweep's media come in runs)
 
-        def submit(item: tuple[SimulationSpec, int]) -> Future:
-            spec, index = item
+        def submit(item: tuple) -> Future:
+            spec, index, *members = item  # (spec, index) or (spec, index, member albedos)
             if last[0] is not spec:
                 last[:] = [spec, spec.model_dump(mode="json")]
-            return self._pool.submit(_run, last[1], index, progress is not None)
+            return self._pool.submit(_run, last[1], index, progress is not None, tuple(members[0]) if members else ())
 
         results = in_order(submit, items, window or 2 * self.workers)
         if progress is None:

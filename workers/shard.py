@@ -23,9 +23,10 @@ from .connections import Vertices, VertexBuffer, connection_function
 from .engine import init_engine
 from .harvest import exit_function, finish_function
 from .hybrid import entries_function
+from .reweight import MemberTallies, member_prefix
 from .plan import CHUNK, EXIT_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, Configs, ShardPlan, build_configs
 from .tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
-from .walk import EMPTY, EXITED, RUNNING, Lanes, step_function
+from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
 __all__ = ["run_shard", "ShardPlan", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
 
@@ -63,7 +64,7 @@ class _Runner:
     """The mutable bookkeeping of one shard run (kept out of the pure entry point): the lanes and
     the chunks they are stepped in, the accumulators, the vertices waiting for connection."""
 
-    def __init__(self, plan: ShardPlan, progress: Callable[[int], None] | None):
+    def __init__(self, plan: ShardPlan, progress: Callable[[int], None] | None, members: tuple[float, ...] = ()):
         self.plan, self.progress = plan, progress
         self.kernels = _Kernels.for_plan(plan)
         self.count = _Counters()
@@ -72,6 +73,13 @@ class _Runner:
         ranges = plan.spec.batch_photon_ranges(plan.shard_index)
         self.acc = BatchAccumulator(batch_estimators, plan.cfgs.n, plan.layout.shape, ranges)
         self.photons = PhotonAccumulator(photon_estimators, plan.cfgs.n, plan.layout.shape)
+        self.members = None  # a shared walk's other albedos (workers.reweight)
+        if members:
+            walked = set(plan.cfgs.albedo.tolist())
+            if len(walked) != 1 or batch_estimators:
+                raise ValueError("a shared walk needs one albedo for every configuration and only per-photon estimators (exits, hybrid)")
+            self.members = MemberTallies(members, walked.pop(), plan.cfgs.table.w0.double().numpy(), photon_estimators,
+                                         plan.cfgs.n, plan.layout.shape)  # fmt: skip
         self.vertex_buffer = VertexBuffer(VERTEX_CHUNK)
         # Lanes: [0, active * chunk) hold every running photon; chunks are views stepped one by one.
         self.lanes = Lanes.empty(plan.n_lanes)
@@ -89,6 +97,9 @@ class _Runner:
         count): in the tail, where only the first chunk runs, the rest are EMPTY and cost little."""
         plan = self.plan
         launch = torch.tensor([plan.start, self.next_launch, plan.n_launch, plan.cfgs.n], dtype=torch.int64)
+        if self.members is not None:  # the finished lanes' state, before the refill overwrites it
+            L = self.lanes
+            snap = (L.status.clone(), L.nscat.clone(), L.w.clone())
         key, absorbed, truncated, n_free, steps = self.kernels.finish(self.lanes, plan.cfgs.table, launch, plan.exit_bins.batch_starts)
         launched = min(int(n_free), plan.n_launch - self.next_launch)
         self.next_launch += launched
@@ -98,6 +109,9 @@ class _Runner:
         key = key.numpy()
         done = key < len(self.acc.sizes) * plan.cfgs.n
         self.photons.add_walk(key[done] % plan.cfgs.n, absorbed.numpy()[done], truncated.numpy()[done])
+        if self.members is not None:
+            st, nscat, w = (t.numpy()[done] for t in snap)
+            self.members.add_walk(key[done] % plan.cfgs.n, st == EXITED, st == TRUNCATED, w, nscat)
         return self.acc.finish_photons(key), launched
 
     def shrinkable(self, running: int) -> bool:
@@ -160,16 +174,21 @@ class _Runner:
 
     def tally_exits(self, idx: torch.Tensor) -> None:
         """Tally the exit events of lanes idx: one entry per photon."""
-        for flat, _batch, g, s in self._blocks(idx, lambda b: self.kernels.exits(b, self.lanes, self.plan.exit_bins)):
+        fn = lambda b: (*self.kernels.exits(b, self.lanes, self.plan.exit_bins), self.lanes.nscat[b])  # noqa: E731
+        for flat, _batch, g, s, nscat in self._blocks(idx, fn):
             self.photons.add_exits("exits", flat, g, s)
+            if self.members is not None:
+                self.members.add_exits(flat, g, s, nscat)
 
     def tally_hybrid(self, idx: torch.Tensor) -> None:
         """The hybrid estimator's entries of the photons finished in lanes idx: the first-vertex
         connection samples (single) and the exit after two or more scatterings (multiple)."""
         plan = self.plan
-        fn = lambda b: self.kernels.entries(b, self.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout)  # noqa: E731
-        for flat2, g, s, key, weight in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1)):
+        fn = lambda b: (*self.kernels.entries(b, self.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout), self.lanes.nscat[b])  # noqa: E731
+        for flat2, g, s, key, weight, nscat in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1, 0)):
             self.photons.add_photons("hybrid", flat2, g, s, key, weight)
+            if self.members is not None:
+                self.members.add_hybrid(flat2, g, s, key, nscat)
 
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
@@ -221,9 +240,13 @@ class _Runner:
 
     # -- main loop ------------------------------------------------------------------------------
     def run(self) -> ShardTally:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         with torch.no_grad():  # also around the first refill: grad mode is part of a compiled graph's key
-            return self._run(t0)
+            tally = self._run(t0)
+        tally.info["cpu_s"] = time.thread_time() - c0  # this thread's CPU (torch runs one intra-op thread per shard)
+        if self.members is not None:
+            tally.info["members"] = len(self.members)
+        return tally
 
     def _run(self, t0: float) -> ShardTally:
         plan = self.plan
@@ -246,6 +269,9 @@ class _Runner:
         assert self.acc.complete, "every batch must have folded once all photons finished"
         stats, counts = self.photons.finish(plan.stop - plan.start)
         batch_stats, batch_counts = self.acc.finish()
+        for j, (m_stats, m_counts) in enumerate(self.members.finish(plan.stop - plan.start) if self.members is not None else []):
+            stats.update({member_prefix(j) + k: v for k, v in m_stats.items()})
+            counts.update({member_prefix(j) + k: v for k, v in m_counts.items()})
         info = {
             "photons": plan.n_launch, "lanes": plan.n_lanes, "lane_steps": self.count.steps, "photon_steps": self.count.photon_steps,
             "vertices": self.count.vertices, "tail_lanes": self.tail_lanes, "elapsed_s": time.perf_counter() - t0,
@@ -254,12 +280,17 @@ class _Runner:
         return ShardTally(plan.shard_index, {**stats, **batch_stats}, {**counts, **batch_counts}, plan.stop - plan.start, info)
 
 
-def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int], None] | None = None) -> ShardTally:
+def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int], None] | None = None,
+              members: tuple[float, ...] = ()) -> ShardTally:
     """Simulate shard `shard_index` of `spec`; a pure function of its inputs.
+
+    members: further albedos (each <= the spec's, one-channel medium, exits or hybrid) tallied
+    from the same walk by reweighting (:mod:`workers.reweight`); member j's quantities carry
+    the prefix ``member_prefix(j)`` in the tally, the spec's own are unchanged.
 
     progress, if given, is called with the number of photons (all configurations) finished since
     the last call.  The statistics in the result do not depend on the machine, the thread count
     or when the shard runs; `info` carries timings and counters that do.
     """
     init_engine()
-    return _Runner(ShardPlan.build(spec, shard_index), progress).run()
+    return _Runner(ShardPlan.build(spec, shard_index), progress, tuple(members)).run()

@@ -87,7 +87,8 @@ def run_shards(spec, indices, *, progress=None, threads: int | None = None, proc
 
 def run_tasks(items, *, progress=None, threads: int | None = None, processes: int | None = None,
               workers_hint: int | None = None, window: int | None = None):
-    """run_shard(spec, index) of each item of `items` (lazily drawn), on `processes` worker
+    """run_shard(spec, index) of each item (spec, index) of `items` (lazily drawn; an item
+    (spec, index, member albedos) also tallies those albedos from the walk, workers.reweight), on `processes` worker
     processes or `threads` threads; yields the tallies in item order with at most `window`
     (default two per worker) running or waiting ahead (:func:`workers.pool.in_order`).
     `workers_hint`, if given, caps the workers (no more than there are items)."""
@@ -106,11 +107,12 @@ def run_tasks(items, *, progress=None, threads: int | None = None, processes: in
     torch.set_num_threads(1)
     try:
         if threads == 1:
-            for spec, i in items:
-                yield run_shard(spec, i, progress=progress)
+            for spec, i, *members in items:
+                yield run_shard(spec, i, progress=progress, members=tuple(members[0]) if members else ())
             return
         with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="shard") as pool:
-            submit = lambda item: pool.submit(run_shard, item[0], item[1], progress=progress)  # noqa: E731
+            submit = lambda item: pool.submit(run_shard, item[0], item[1], progress=progress,  # noqa: E731
+                                              members=tuple(item[2]) if len(item) > 2 else ())
             yield from in_order(submit, items, window or 2 * threads)
     finally:
         torch.set_num_threads(previous)
@@ -132,7 +134,7 @@ def simulate_sweep(spec, out_dir: str, *, filesystem=None, progress=None, thread
 
     import pyarrow.fs as pafs
 
-    from .sweep import JobFold, read_part, target_rule, write_part, write_sweep_tables
+    from .sweep import JobFold, group_walk, read_part, target_rule, write_part, write_sweep_tables
 
     fs = filesystem or pafs.LocalFileSystem()
     fold = JobFold(spec, stop_rule if stop_rule is not None else target_rule(spec))
@@ -143,18 +145,19 @@ def simulate_sweep(spec, out_dir: str, *, filesystem=None, progress=None, thread
     def items():
         task, n = 0, spec.task_count()
         while (task := max(task, fold.next_task)) < n:
-            medium, shard = spec.task_of(task)
+            group, shard = spec.task_of(task)
+            leader, members = group_walk(spec, group)
             submitted.append(task)
-            yield medium_spec(medium), shard
+            yield medium_spec(leader), shard, members
             task += 1
 
     for tally in run_tasks(items(), progress=progress, threads=threads, processes=processes):
         task = submitted.popleft()
         if task < fold.next_task:
             continue  # past its medium's early stop: never counted
-        result = fold.add(task, tally)
-        if result is not None:
-            write_part(result, f"{parts}/m{result.medium_index:06d}", fs)
+        if fold.add(task, tally) is not None:
+            for result in fold.finished:
+                write_part(result, f"{parts}/m{result.medium_index:06d}", fs)
     tables = (read_part(f"{parts}/m{m:06d}", fs) for m in range(spec.n_media))
     files = write_sweep_tables(spec, fold.media, tables, out_dir, fs)
     fs.delete_dir(parts)

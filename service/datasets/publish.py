@@ -96,8 +96,9 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
             continue
         if len(fold.skipped):
             skipped.append(fold.skipped)
-        if spec.is_sweep:
-            parts[str(result.medium_index)] = _write_part(files, result)
+        if spec.is_sweep:  # every medium of the walk group that finished (workers.sweep.JobFold)
+            for finished in fold.finished:
+                parts[str(finished.medium_index)] = _write_part(files, finished)
         last = result
         if skipped and not fold.done:
             break  # commit the early stop now: its medium's remaining tasks stop being claimed

@@ -24,6 +24,17 @@ _COUNTS = ("done", "running", "stalled", "failed", "cancelled", "photons", "phot
 """Columns of the shard counts in :meth:`JobsMixin._progress_statement`."""
 
 
+def _media_counts(spec_json: str, folded: int, total: int, per_group: int) -> dict[str, int]:
+    """media_total and media_merged of a job whose tasks are walk groups x shards (a sweep with
+    shared walks has fewer groups than media: schema.groups)."""
+    groups_done = folded // per_group
+    data = json.loads(spec_json)
+    if not data.get("sweep"):
+        return {"media_total": max(1, total // per_group), "media_merged": groups_done}
+    groups = [len(g) for g in SimulationSpec.model_validate(data).walk_groups()]
+    return {"media_total": sum(groups), "media_merged": sum(groups[:groups_done])}
+
+
 class SpecLike(Protocol):
     """What the store needs of a ``schema.SimulationSpec``."""
 
@@ -227,7 +238,7 @@ class JobsMixin(StoreBase):
         done, running, stalled, failed, cancelled, photons, photons_done_shards, compiling = (
             int(m[k] or 0) for k in _COUNTS)
         skipped = int(m["shards_skipped"])
-        per_medium = int(json.loads(m["spec_json"]).get("shards") or m["shards"]) or 1  # tasks = media x shards
+        per_medium = int(json.loads(m["spec_json"]).get("shards") or m["shards"]) or 1  # tasks = walk groups x shards
         cancelled -= skipped  # cancelled by an early stop (target met): counted apart
         total = int(m["shards"])
         end = m["finished_at"] if m["finished_at"] is not None else m["now"]
@@ -251,7 +262,6 @@ class JobsMixin(StoreBase):
             merge_state=merge_state, photons_done=photons, photons_total=m["photons_total"], elapsed_s=elapsed,
             rate_photons_per_s=rate, eta_s=eta, error=m["error"],
             dataset_name=m["dataset_name"], dataset_version=m["dataset_version"],
-            shards_skipped=skipped, tasks_folded=int(m["folded"]), media_total=max(1, total // per_medium),
-            media_merged=int(m["folded"]) // per_medium,
+            shards_skipped=skipped, tasks_folded=int(m["folded"]), **_media_counts(m["spec_json"], int(m["folded"]), total, per_medium),
             shards_compiling=compiling, phase=m["phase"] if compiling and state not in TERMINAL_JOB_STATES else None,
         )

@@ -58,3 +58,21 @@ def test_a_single_medium_has_one_entry(sweep_client):
     items = sweep_client.get(f"/v1/jobs/{job['id']}/media").json()["items"]
     assert len(items) == 1 and items[0]["albedo"] == [0.5] and items[0]["eta"] == 1.3
     assert sweep_client.get("/v1/jobs/00000000-0000-0000-0000-000000000000/media").status_code == 404
+
+
+def test_media_of_a_sweep_with_shared_walks(sweep_client, store, storage):
+    """Two walk groups of two albedos each (tasks = groups x shards): every medium is listed with
+    its group's shards, and the job's progress counts media."""
+    shared = dict(SWEEP, sweep={"albedo": [0.8, 0.9], "g": [0.0, 0.5], "eta": [1.3], "walks": "shared"})
+    spec = parse_spec(shared)
+    assert spec.walk_groups() == [(0, 1), (2, 3)]
+    job = sweep_client.post("/v1/jobs", json={"spec": shared}, headers=AUTH).json()
+    page = sweep_client.get(f"/v1/jobs/{job['id']}/media", params={"limit": 2, "offset": 1}).json()
+    assert [m["medium"] for m in page["items"]] == [1, 2] and all(m["shards_total"] == 2 for m in page["items"])
+    Worker(store, storage, once=True, poll_seconds=0.05).loop()
+    assert store.get_job(job["id"]).state == "succeeded", store.get_job(job["id"]).error
+    after = sweep_client.get(f"/v1/jobs/{job['id']}/media").json()
+    assert after["media_total"] == 4
+    assert all(m["merged"] and m["shards_done"] == 2 and m["shards_folded"] == 2 for m in after["items"])
+    progress = store.progress(job["id"])
+    assert (progress.media_total, progress.media_merged, progress.shards_total) == (4, 4, 4)

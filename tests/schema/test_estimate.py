@@ -66,3 +66,12 @@ def test_a_sweep_counts_every_medium_and_its_shard_is_its_costliest_medium():
     e = estimate_shard(sweep)
     assert e.photons == 500  # one medium, one channel
     assert e.steps == pytest.approx(500 * max(steps_per_photon(a, g) for a in (0.5, 0.99) for g in (0.0, 0.8)))
+
+
+def test_shared_walks_walk_each_group_once():
+    spec = {"name": "sw", "sweep": {"albedo": [0.8, 0.9, 0.99], "g": [0.0, 0.8], "eta": [1.3]}, "photons": 1000,
+            "shards": 2, "estimator": "exits"}
+    assert parse_spec(spec).walk_groups() == [(0, 1, 2), (3, 4, 5)]
+    assert job_photons(parse_spec(spec)) == 1000 * 2
+    spec["sweep"]["walks"] = "independent"
+    assert job_photons(parse_spec(spec)) == 1000 * 6

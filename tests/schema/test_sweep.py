@@ -131,8 +131,10 @@ def test_sweep_has_no_single_channel_list():
 # ---- tasks ----------------------------------------------------------------------------------
 
 
-def test_task_index_is_medium_major():
-    spec = parse_spec(sweep_spec())
+def test_task_index_is_medium_major_with_independent_walks():
+    data = sweep_spec()
+    data["sweep"] = dict(data["sweep"], walks="independent")
+    spec = parse_spec(data)
     assert spec.task_count() == 12 * 4
     pairs = [spec.task_of(t) for t in range(spec.task_count())]
     assert pairs == [(m, s) for m in range(12) for s in range(4)]
@@ -142,8 +144,18 @@ def test_task_index_is_medium_major():
             spec.task_of(bad)
     with pytest.raises(ShardIndexError, match="shard_index"):
         spec.task_index(0, 4)
-    with pytest.raises(ShardIndexError, match="medium index"):
+    with pytest.raises(ShardIndexError, match="walk group index"):
         spec.task_index(12, 0)
+
+
+def test_task_index_is_walk_group_major_with_shared_walks():
+    spec = parse_spec(sweep_spec())  # hybrid, weights: shared walks by default
+    groups = spec.walk_groups()
+    assert spec.walk_mode() == "shared" and len(groups) < spec.n_media
+    assert spec.task_count() == len(groups) * 4
+    pairs = [spec.task_of(t) for t in range(spec.task_count())]
+    assert pairs == [(k, s) for k in range(len(groups)) for s in range(4)]
+    assert all(spec.task_index(k, s) == t for t, (k, s) in enumerate(pairs))
 
 
 # ---- canonical JSON -------------------------------------------------------------------------

@@ -43,8 +43,20 @@ def reference(tmp_path_factory):
     return {name: (out / name).read_bytes() for name in FILES}
 
 
-def run_sweep(db_url: str, storage_uri: str, logs, workers: int, env: dict | None = None):
-    spec = sweep_spec()
+def shared_spec():
+    # Weights absorption: each eta's two albedos share one walk (one group per eta, leader 0.9).
+    return parse_spec({
+        "name": "sweep-shared", "sweep": {"albedo": [0.3, 0.9], "g": [0.5], "eta": [1.0, 1.4], "walks": "shared",
+                                          "group_edges": [0.0]},
+        "incidence_deg": [0, 35], "photons": 400, "shards": 3, "batches_per_shard": 2, "estimator": "hybrid",
+        "seed": 3, "target": {"rel_stderr": 0.2},
+        "bins": {"radial": {"count": 4, "max_mm": 3.0}, "theta_s": {"count": 2}, "cos_theta_o": {"count": 2},
+                 "phi_o": {"count": 2}},
+    })
+
+
+def run_sweep(db_url: str, storage_uri: str, logs, workers: int, env: dict | None = None, spec=None):
+    spec = spec or sweep_spec()
     store = JobStore(db_url)
     storage = DatasetStorage(storage_uri)
     job = store.submit(spec)
@@ -128,3 +140,31 @@ def test_two_workers_on_an_s3_store_give_the_same_bytes(tmp_path, s3_uri, refere
     _check_progress(store, job)
     assert _job_files(storage, job.id) == []
     assert all(ref.uri.startswith(f".jobs/{job.id}/shards/") for _, ref in store.shard_files(job.id))
+
+
+def test_shared_walks_through_the_service_give_the_simulate_bytes(tmp_path):
+    """A job of shared walk groups (2 groups x 3 shards, a group folded and stopped as one) on two
+    workers: the same bytes as `bssrdf simulate`."""
+    from workers.simulate import simulate_sweep
+
+    spec = shared_spec()
+    assert spec.walk_groups() == [(0, 1), (2, 3)] and spec.task_count() == 6
+    out = tmp_path / "reference"
+    simulate_sweep(spec, str(out), threads=1)
+    url = f"sqlite:///{tmp_path / 'jobs.sqlite'}"
+    store, _storage, job, got = run_sweep(url, str(tmp_path / "data"), tmp_path / "logs", 2, spec=spec)
+    assert got == {name: (out / name).read_bytes() for name in FILES}
+    assert store.progress(job.id).shards_total == 6
+
+
+def test_progress_counts_media_of_shared_walk_groups():
+    """A job's task rows are walk groups x shards: progress reports media, not groups."""
+    import json
+
+    from service.store.jobs import _media_counts
+
+    spec = shared_spec()  # 2 groups of 2 media, 3 shards
+    doc = json.dumps(spec.model_dump(mode="json"))
+    assert _media_counts(doc, 0, 6, 3) == {"media_total": 4, "media_merged": 0}
+    assert _media_counts(doc, 3, 6, 3) == {"media_total": 4, "media_merged": 2}
+    assert _media_counts(doc, 6, 6, 3) == {"media_total": 4, "media_merged": 4}

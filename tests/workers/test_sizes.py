@@ -33,7 +33,12 @@ def test_limits_name_the_field_the_estimate_and_the_limit():
     sweep = parse_spec({"name": "sz", "sweep": {"albedo": {"count": 100}, "g": [0.0, 0.5], "eta": [1.3]},
                         "photons": 1000, "shards": 2})
     est = estimate_sizes(sweep)
-    assert est.media == 200 and est.shard_payload_bytes == estimate_sizes(sweep.medium_spec(7)).shard_payload_bytes
+    # Shared walks (the default here): a task tallies every albedo of its walk group.
+    largest = max(len(g) for g in sweep.walk_groups())
+    one = estimate_sizes(sweep.medium_spec(7)).shard_payload_bytes
+    assert est.media == 200 and largest > 1 and est.shard_payload_bytes == largest * one
+    independent = parse_spec({**sweep.model_dump(mode="json"), "sweep": {**sweep.sweep.model_dump(mode="json"), "walks": "independent"}})
+    assert estimate_sizes(independent).shard_payload_bytes == one
     assert size_limit_problems(sweep, est.shard_payload_bytes, est.dataset_bytes) == []
     (shard,) = size_limit_problems(sweep, est.shard_payload_bytes - 1, est.dataset_bytes)
     assert shard[0] == "spec.bins" and str(est.shard_payload_bytes) in shard[1] and "BSSRDF_MAX_SHARD_BYTES" in shard[1]

@@ -141,6 +141,7 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
         "rhoEffMonotone": bool(np.all(np.diff(rho_eff) > 0)),
         "interpolationWarnings": interpolation_warnings(rho, range_mass, range_rho),
         "provenance": source.provenance("pbrt"),
+        "albedoRows": albedo_rows(source, g, eta),
     }
     return PbrtTable(
         g=g, eta=eta, rho_samples=rho, radius_samples=radius,
@@ -152,6 +153,26 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
         rho_truncated_stderr=np.array(columns["truncated_se"]), range_negative_mass=range_mass,
         range_worst_rho=range_rho, meta=meta,
     )
+
+
+def albedo_rows(source: ExportSource, g: float, eta: float) -> dict:
+    """How the table's albedo rows were walked and what that means for their correlation:
+    rows of one shared walk group (workers/reweight.py) come from the same photons."""
+    spec = source.spec
+    if not spec.is_sweep or spec.walk_mode() == "independent":
+        return {"walks": "independent", "correlation": "every albedo row has its own walk: rows are independent"}
+    albedos = spec.sweep.albedos()
+    media = spec.media()
+    groups = [[albedos[k[0] % len(albedos)], albedos[k[-1] % len(albedos)]] for k in spec.walk_groups()
+              if media[k[-1]].g[0] == g and media[k[-1]].eta == eta]  # fmt: skip
+    return {
+        "walks": "shared",
+        "groups": groups,
+        "correlation": "rows whose albedos lie in one group [first, last] are estimated from the same photons, walked at the "
+                       "group's last (largest) albedo and reweighted: their errors are positively correlated (nearly fully "
+                       "for neighbours), so an interpolation between two rows of a group is more precise than independent "
+                       "errors suggest, and errors of several rows must not be combined as independent; groups are independent",
+    }  # fmt: skip
 
 
 def write_pbrt(source: ExportSource, out_dir: str | Path) -> list[str]:

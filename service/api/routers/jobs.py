@@ -114,10 +114,14 @@ def job_media(
     media = spec.media()
     page = media[offset : offset + limit]
     per_medium = spec.photons * len(spec.incidence_deg)
-    rows = {m.medium: m for m in store.medium_progress(job.id, spec.shards, offset=offset, limit=limit)}
+    # Tasks are walk groups x shards: every medium of a group reports its group's shards.
+    group_of = {m: k for k, g in enumerate(spec.walk_groups()) for m in g}
+    first = group_of[page[0].index] if page else 0
+    count = group_of[page[-1].index] - first + 1 if page else 1
+    rows = {m.medium: m for m in store.medium_progress(job.id, spec.shards, offset=first, limit=count)}
     items = []
     for medium in page:
-        p = rows.get(medium.index)  # no row: the job's tasks are gone (it was deleted meanwhile)
+        p = rows.get(group_of[medium.index])  # no row: the job's tasks are gone (it was deleted meanwhile)
         items.append(MediumProgressPublic(
             medium=medium.index, albedo=list(medium.albedo), g=list(medium.g), eta=medium.eta,
             shards_total=spec.shards if p is None else p.shards_total, shards_done=0 if p is None else p.shards_done,
