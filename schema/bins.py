@@ -52,6 +52,10 @@ __all__ = [
     "PBRT_RATIO",
     "pbrt_radius_nodes",
     "pbrt_radial_edges",
+    "MAX_MFP_RANGE",
+    "MAX_MM_RANGE",
+    "MIN_FRACTION_RANGE",
+    "PBRT_MAX_COUNT",
 ]
 
 TWO_PI = 2.0 * math.pi
@@ -69,6 +73,20 @@ PBRT_R1 = 2.5e-3
 """pbrt's first non-zero radius node, in optical radii r sigma_t (pbrt-v3 bssrdf.cpp)."""
 PBRT_RATIO = 1.2
 """Ratio of consecutive non-zero radius nodes of pbrt's table."""
+
+# Physical ranges of the radial extent (docs/architecture.md, "Physical ranges"): with a medium
+# inside schema.medium's ranges every edge is a finite, normal float64 in mm, and in optical radii
+# a finite float32 (the walk's lookups), and 1 / area and its square are finite.
+MAX_MFP_RANGE = Interval(0.001, 10_000.0, what="max_mfp")
+"""Outer radius in transport mean free paths: at 1e4 nothing of a path capped at max_scatter
+(<= 1e7 events, a diffusion length of a few thousand) reaches it; below 1e-3 a bin is a point."""
+MAX_MM_RANGE = Interval(1e-6, 1e6, what="max_mm")
+"""Outer radius in mm: 1 nm to 1 km, the lengths of schema.medium's mean free paths."""
+MIN_FRACTION_RANGE = Interval(1e-9, 1.0, hi_open=True, what="min_fraction")
+"""First inner edge of log spacing as a fraction of the outer radius: nine decades of r."""
+PBRT_MAX_COUNT = 100
+"""Most pbrt radius nodes: node 99 is 2.5e-3 * 1.2^98 = 1.5e5 optical radii (pbrt uses 64); at
+4096 nodes 1.2^4094 overflows float64."""
 
 _CONFIG = ConfigDict(frozen=True, extra="forbid")
 
@@ -90,17 +108,16 @@ class RadialBins(BaseModel):
     model_config = _CONFIG
 
     count: Annotated[int, Interval(1, 4096, what="radial bin count")] = 48
-    max_mm: Annotated[float, Interval(0, None, lo_open=True, what="max_mm")] | None = Field(
-        None, description="Outer radius in mm (excludes max_mfp)."
+    max_mm: Annotated[float, MAX_MM_RANGE] | None = Field(
+        None, description=f"Outer radius in mm, in {MAX_MM_RANGE} (excludes max_mfp)."
     )
-    max_mfp: Annotated[float, Interval(0, None, lo_open=True, what="max_mfp")] | None = Field(
-        None, description="Outer radius in transport mean free paths 1/sigma_t' (per channel); "
+    max_mfp: Annotated[float, MAX_MFP_RANGE] | None = Field(
+        None, description=f"Outer radius in transport mean free paths 1/sigma_t' (per channel), in {MAX_MFP_RANGE}; "
         "default 16 when max_mm is not given."
     )
     spacing: Literal["linear", "log", "pbrt"] = "log"
-    min_fraction: Annotated[
-        float, Interval(0, 1, lo_open=True, hi_open=True, what="min_fraction")
-    ] = Field(1e-3, description="Log spacing: first inner edge as a fraction of the maximum.")
+    min_fraction: Annotated[float, MIN_FRACTION_RANGE] = Field(
+        1e-3, description=f"Log spacing: first inner edge as a fraction of the maximum, in {MIN_FRACTION_RANGE}.")
 
     @model_validator(mode="before")
     @classmethod
@@ -124,11 +141,12 @@ class RadialBins(BaseModel):
                 "received max_mm={mm}, max_mfp={mfp}",
                 {"mm": self.max_mm, "mfp": self.max_mfp},
             )
-        if self.count < 2:
+        if not 2 <= self.count <= PBRT_MAX_COUNT:
             raise PydanticCustomError(
                 "radial_count",
-                'spacing "pbrt" needs count in the allowed range [2, 4096] (pbrt uses 64); received {n}',
-                {"n": self.count},
+                'spacing "pbrt" needs count in the allowed range [2, {hi}] (pbrt uses 64; node k is '
+                "2.5e-3 * 1.2^(k - 1) optical radii); received {n}",
+                {"n": self.count, "hi": PBRT_MAX_COUNT},
             )
         return self
 

@@ -20,6 +20,7 @@ accept a scalar (one channel, or broadcast to all channels) or a list of 1..16 n
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -122,12 +123,14 @@ class Interval:
 
 
 def _num(x: float) -> str:
-    """Short form of a bound: 4.0 -> '4', 2**40 -> '2**40' for powers of two above 2**20."""
+    """Short form of a bound: 4.0 -> '4', 1e-06 -> '1e-6', 2**40 -> '2**40' for powers of two above 2**20."""
     if isinstance(x, int) and x > 2**20 and (x & (x - 1)) == 0:
         return f"2**{x.bit_length() - 1}"
     if isinstance(x, int) and x > 2**20 and ((x + 1) & x) == 0:
         return f"2**{(x + 1).bit_length() - 1} - 1"
-    return f"{x:g}" if isinstance(x, float) else str(x)
+    if isinstance(x, float):
+        return re.sub(r"e([+-])0*(\d)", lambda m: f"e{m[1].lstrip('+')}{m[2]}", f"{x:g}")  # 1e+06 -> 1e6
+    return str(x)
 
 
 @dataclass(frozen=True)

@@ -32,15 +32,30 @@ from .constraints import Interval, PerChannel
 from .names import CHANNEL_NAME_MAX, InvalidName, check_name
 from .presets import PRESET_CHANNELS, PRESETS, get_preset
 
-__all__ = ["ChannelOptics", "MediumSpec", "ETA_RANGE", "G_RANGE"]
+__all__ = ["ChannelOptics", "MediumSpec", "ETA_RANGE", "G_RANGE", "COEFF_RANGE", "SIGMA_T_RANGE", "SCALE_RANGE"]
 
-ETA_RANGE = Interval(0, 4, lo_open=True, what="eta (relative index)")
-G_RANGE = Interval(-1, 1, lo_open=True, hi_open=True, what="g (HG mean cosine)")
+# Physical ranges (docs/architecture.md, "Physical ranges"). Every derived quantity of a medium
+# inside them (sigma_t, albedo, the transport mean free path, radii in mm and in optical radii,
+# bin areas and their squares) is a finite, normal float64, and float32 in the walk.
+ETA_RANGE = Interval(0.25, 4.0, what="eta (relative index)")
+"""Relative index n_medium / n_outside: real indices run from 1 (air) to about 4 (germanium in the
+infrared; the highest in the visible, rutile, is 2.9), and the interface may be either way round."""
+G_RANGE = Interval(-0.999, 0.999, what="g (HG mean cosine)")
+"""HG mean cosine: the walk holds g in float32, which resolves 1 - |g| to 1e-4 here (at 1 - 1e-7 it
+rounds to 0); measured media (tissue, milk, clouds) stay below 0.99."""
+COEFF_RANGE = Interval(0.0, 1e6, what="coefficient [1/mm]")
+"""sigma_a, sigma_s, sigma_s' [1/mm]: at 1e6/mm a mean free path is 1 nm, far below the wavelength
+of light, where radiative transfer no longer describes a medium."""
+SIGMA_T_RANGE = Interval(1e-6, 1e6, what="sigma_t = sigma_a + sigma_s [1/mm]")
+"""Extinction [1/mm] of every channel: a mean free path from 1 nm to 1 km (the clearest water has
+sigma_t of about 1e-5/mm)."""
+SCALE_RANGE = Interval(0.0, 1e6, lo_open=True, what="scale")
+"""A preset's factor on sigma_a and sigma_s' (unit changes); sigma_t is checked after it."""
 
 
 def _coeff(what: str) -> Any:
-    """``float | list[float]`` of finite coefficients >= 0 [1/mm]."""
-    return Annotated[float | list[float], PerChannel(Interval(0, None, what=f"{what} [1/mm]"))]
+    """``float | list[float]`` of finite coefficients in :data:`COEFF_RANGE` [1/mm]."""
+    return Annotated[float | list[float], PerChannel(Interval(COEFF_RANGE.lo, COEFF_RANGE.hi, what=f"{what} [1/mm]"))]
 
 
 PerChannelG = Annotated[float | list[float], PerChannel(G_RANGE)]
@@ -95,7 +110,7 @@ class MediumSpec(BaseModel):
     preset: str | None = Field(
         None, description=f"Measured material (Jensen et al. 2001): {', '.join(PRESETS)}."
     )
-    scale: Annotated[float, Interval(0, None, lo_open=True, what="scale")] | None = Field(
+    scale: Annotated[float, SCALE_RANGE] | None = Field(
         None, description="Preset only: factor on sigma_a and sigma_s' (e.g. unit changes). "
         "Default 1."
     )
@@ -104,9 +119,9 @@ class MediumSpec(BaseModel):
     sigma_s_reduced: _coeff("sigma_s_reduced") | None = Field(
         None, description="Reduced scattering coefficient sigma_s (1 - g) [1/mm]."
     )
-    g: PerChannelG | None = Field(None, description="HG mean cosine, in (-1, 1). Default 0.")
+    g: PerChannelG | None = Field(None, description=f"HG mean cosine, in {G_RANGE}. Default 0.")
     eta: Annotated[float, ETA_RANGE] | None = Field(
-        None, description="Relative index of refraction, in (0, 4]. Required unless preset."
+        None, description=f"Relative index of refraction, in {ETA_RANGE}. Required unless preset."
     )
     channel_names: list[str] | None = Field(
         None, description='Unique channel names; default "R","G","B" for presets, else c0, c1...'
@@ -164,8 +179,8 @@ class MediumSpec(BaseModel):
             raise _form_error("scale applies to presets only; received scale={value}",
                               value=self.scale)
         if self.eta is None:
-            raise _form_error("eta (relative index, allowed range (0, 4]) is required when the "
-                              "coefficients are given explicitly; received none")
+            raise _form_error("eta (relative index, allowed range {allowed}) is required when the "
+                              "coefficients are given explicitly; received none", allowed=str(ETA_RANGE))
 
     def _names(self, n: int) -> list[str]:
         if self.channel_names is None:
@@ -185,11 +200,11 @@ class MediumSpec(BaseModel):
 
     def _check_extinction(self) -> None:
         for c in self.channels():
-            if not c.sigma_t > 0:
+            if not SIGMA_T_RANGE.contains(c.sigma_t):
                 raise _form_error(
-                    "sigma_t = sigma_a + sigma_s must be > 0 in every channel (allowed range "
-                    "(0, inf)); channel {name} has sigma_a = {a}, sigma_s = {s}",
-                    name=c.name, a=c.sigma_a, s=c.sigma_s)
+                    "sigma_t = sigma_a + sigma_s must be in the allowed range {allowed} in every "
+                    "channel; received channel {name} with sigma_a = {a}, sigma_s = {s}",
+                    allowed=str(SIGMA_T_RANGE), name=c.name, a=c.sigma_a, s=c.sigma_s)
 
     @property
     def n_channels(self) -> int:

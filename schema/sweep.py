@@ -147,10 +147,10 @@ class SweepSpec(BaseModel):
         'values, stored ascending) or {"count": N, "spacing": "pbrt" | "linear"}.'
     )
     g: list[Annotated[float, G_RANGE]] = Field(
-        description=f"Henyey-Greenstein mean cosines in (-1, 1), 1..{MAX_AXIS} distinct values."
+        description=f"Henyey-Greenstein mean cosines in {G_RANGE}, 1..{MAX_AXIS} distinct values."
     )
     eta: list[Annotated[float, ETA_RANGE]] = Field(
-        description=f"Relative indices of refraction in (0, 4], 1..{MAX_AXIS} distinct values."
+        description=f"Relative indices of refraction in {ETA_RANGE}, 1..{MAX_AXIS} distinct values."
     )
 
     walks: Literal["shared", "independent"] | None = Field(

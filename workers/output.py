@@ -18,6 +18,7 @@ import pyarrow.parquet as pq
 from schema import BINS_SCHEMA, RADIAL_SCHEMA, SUMMARY_SCHEMA, table_metadata
 from schema.version import code_version
 
+from .finite import check_finite
 from .merge import Result
 from .tally import BATCH_ESTIMATORS
 
@@ -227,8 +228,12 @@ class TableWriter:
         self.add_tables(radial_table(result), bins_table(result), summary_table(result))
 
     def add_tables(self, radial: pa.Table, bins: pa.Table, summary: pa.Table) -> None:
-        """Append one medium's tables, already built (e.g. read back from a part file)."""
-        for name, table in (("radial", radial), ("bins", bins), ("summary", summary)):
+        """Append one medium's tables, already built (e.g. read back from a part file); refused
+        (:class:`workers.finite.NonFiniteResult`) if one holds a non-finite number."""
+        tables = (("radial", radial), ("bins", bins), ("summary", summary))
+        for name, table in tables:
+            check_finite(table, name)
+        for name, table in tables:
             self._writers[name].write_table(table, row_group_size=ROW_GROUP_ROWS)
 
     def close(self) -> list[str]:

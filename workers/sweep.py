@@ -28,6 +28,7 @@ import pyarrow.parquet as pq
 from schema import SimulationSpec
 from schema.version import code_version
 
+from .finite import check_finite
 from .merge import Fold, MergeError, Result
 from .output import NORMALISATION, RNG_FACT, TableWriter, bins_table, engine_fact, radial_table, summary_table
 from .shard import run_shard
@@ -242,9 +243,13 @@ def walk_facts(spec: SimulationSpec) -> dict:
 
 
 def write_part(result: Result, directory: str, filesystem: pafs.FileSystem) -> list[str]:
-    """One medium's tables as Parquet files in ``directory`` (no run metadata); the file names."""
+    """One medium's tables as Parquet files in ``directory`` (no run metadata); the file names.
+    Refused (:class:`workers.finite.NonFiniteResult`) if one holds a non-finite number."""
+    tables = (radial_table(result), bins_table(result), summary_table(result))
+    for name, table in zip(("radial", "bins", "summary"), tables):
+        check_finite(table, name)
     filesystem.create_dir(directory, recursive=True)
-    for name, table in zip(PART_FILES, (radial_table(result), bins_table(result), summary_table(result))):
+    for name, table in zip(PART_FILES, tables):
         with filesystem.open_output_stream(f"{directory}/{name}") as f:
             pq.write_table(table, f, compression="zstd")
     return list(PART_FILES)

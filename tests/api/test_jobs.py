@@ -16,13 +16,13 @@ def medium(**changes) -> dict:
 
 # (spec, field, allowed, received): each spec has exactly one problem.
 BAD_SPECS = [
-    pytest.param(tiny_spec(medium=medium(sigma_a=-0.5)), "spec.medium.sigma_a", "[0, inf)", -0.5, id="negative-sigma_a"),
-    pytest.param(tiny_spec(medium=medium(sigma_s=[1.0, -2.0])), "spec.medium.sigma_s", "[0, inf)", None,
+    pytest.param(tiny_spec(medium=medium(sigma_a=-0.5)), "spec.medium.sigma_a", "[0, 1e6]", -0.5, id="negative-sigma_a"),
+    pytest.param(tiny_spec(medium=medium(sigma_s=[1.0, -2.0])), "spec.medium.sigma_s", "[0, 1e6]", None,
                  id="negative-sigma_s-entry"),
-    pytest.param(tiny_spec(medium=medium(g=1.0)), "spec.medium.g", "(-1, 1)", 1.0, id="g-is-1"),
-    pytest.param(tiny_spec(medium=medium(g=-1.5)), "spec.medium.g", "(-1, 1)", -1.5, id="g-below-minus-1"),
-    pytest.param(tiny_spec(medium=medium(eta=0.0)), "spec.medium.eta", "(0, 4]", 0.0, id="eta-zero"),
-    pytest.param(tiny_spec(medium=medium(eta=-1.3)), "spec.medium.eta", "(0, 4]", -1.3, id="eta-negative"),
+    pytest.param(tiny_spec(medium=medium(g=1.0)), "spec.medium.g", "[-0.999, 0.999]", 1.0, id="g-is-1"),
+    pytest.param(tiny_spec(medium=medium(g=-1.5)), "spec.medium.g", "[-0.999, 0.999]", -1.5, id="g-below-minus-1"),
+    pytest.param(tiny_spec(medium=medium(eta=0.0)), "spec.medium.eta", "[0.25, 4]", 0.0, id="eta-zero"),
+    pytest.param(tiny_spec(medium=medium(eta=-1.3)), "spec.medium.eta", "[0.25, 4]", -1.3, id="eta-negative"),
     pytest.param(tiny_spec(photon=5), "spec.photon", None, 5, id="unknown-key"),
     pytest.param(tiny_spec(medium=medium(colour="red")), "spec.medium.colour", None, "red", id="unknown-medium-key"),
     pytest.param(tiny_spec(medium=medium(sigma_a=[1.0, 2.0], sigma_s=[1.0, 2.0, 3.0])), "spec.medium", None, None,

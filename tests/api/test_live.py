@@ -142,8 +142,8 @@ def test_a_job_through_the_http_api_and_the_client_commands(live, tmp_path):
     bad.write_text(json.dumps(tiny_spec(medium={"sigma_a": -1.0, "sigma_s": 1.0, "g": 1.0, "eta": 1.3})))
     refused = bssrdf(["submit", str(bad), "--token", TOKEN], cli_env, tmp_path)
     assert refused.returncode == 2
-    assert "HTTP 422" in refused.stderr and "spec.medium.sigma_a" in refused.stderr and "[0, inf)" in refused.stderr
-    assert "spec.medium.g" in refused.stderr and "(-1, 1)" in refused.stderr and "received 1.0" in refused.stderr
+    assert "HTTP 422" in refused.stderr and "spec.medium.sigma_a" in refused.stderr and "[0, 1e6]" in refused.stderr
+    assert "spec.medium.g" in refused.stderr and "[-0.999, 0.999]" in refused.stderr and "received 1.0" in refused.stderr
     assert len(api.get("/v1/jobs").json()["items"]) == 2
     api.close()
 

@@ -186,9 +186,9 @@ def test_bin_limit_counts_one_channel_per_medium():
 @pytest.mark.parametrize("sweep, field, needle", [
     ({"albedo": [0.5, 1.5], "g": [0.0], "eta": [1.3]}, "sweep.albedo.list.1", "[0, 1]; received 1.5"),
     ({"albedo": [-0.1], "g": [0.0], "eta": [1.3]}, "sweep.albedo.list.0", "[0, 1]; received -0.1"),
-    ({"albedo": [0.5], "g": [1.0], "eta": [1.3]}, "sweep.g.0", "(-1, 1); received 1.0"),
-    ({"albedo": [0.5], "g": [0.0], "eta": [0.0]}, "sweep.eta.0", "(0, 4]; received 0.0"),
-    ({"albedo": [0.5], "g": [0.0], "eta": [float("nan")]}, "sweep.eta.0", "(0, 4]; received nan"),
+    ({"albedo": [0.5], "g": [1.0], "eta": [1.3]}, "sweep.g.0", "[-0.999, 0.999]; received 1.0"),
+    ({"albedo": [0.5], "g": [0.0], "eta": [0.0]}, "sweep.eta.0", "[0.25, 4]; received 0.0"),
+    ({"albedo": [0.5], "g": [0.0], "eta": [float("nan")]}, "sweep.eta.0", "[0.25, 4]; received nan"),
     ({"albedo": [0.5, 0.5], "g": [0.0], "eta": [1.3]}, "sweep.albedo", "distinct; received [0.5, 0.5]"),
     ({"albedo": [], "g": [0.0], "eta": [1.3]}, "sweep.albedo", "[1, 1024]); received 0"),
     ({"albedo": [0.5], "g": [], "eta": [1.3]}, "sweep.g", "[1, 64]); received 0"),
@@ -224,7 +224,7 @@ def test_sweep_json_schema_lists_both_forms():
     schema = SimulationSpec.model_json_schema()
     assert {"required": ["sweep"]} in schema["oneOf"] and {"required": ["medium"]} in schema["oneOf"]
     assert "sweep" in schema["properties"]
-    assert math.isclose(SweepSpec.model_json_schema()["properties"]["g"]["items"]["exclusiveMaximum"], 1)
+    assert math.isclose(SweepSpec.model_json_schema()["properties"]["g"]["items"]["maximum"], 0.999)
 
 
 def test_radial_target_must_hold_a_bin_of_every_medium():
