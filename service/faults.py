@@ -8,8 +8,9 @@ a worker process that reaches it sends itself SIGSTOP, so that a test waiting fo
   memory; nothing of this round committed yet);
 - ``staged``: the version's tables and metadata.json are written in its staging directory,
   ``complete_merge`` not yet called;
-- ``publish``: the version's tables and metadata.json are written and moved to ``NAME/vN``,
-  inside ``complete_merge``'s transaction, before it commits (the catalog row not yet visible).
+- ``publish``: the version's tables and metadata.json are written and moved to ``NAME/vN``
+  by ``complete_merge``, before the commit of its catalog row (not yet visible); on SQLite
+  outside any transaction, under the name's version lock.
 
 Unset (the default, and in every deployment) it costs one environment lookup per point and
 does nothing. Used by tests/service/test_merge_faults.py.

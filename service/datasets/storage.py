@@ -10,9 +10,11 @@ Layout under the storage root::
                                       so that a merge killed while writing leaves nothing behind)
 
 A version exists when its catalog row exists (``dataset_versions``, written in the same DB
-transaction that ends the job). The staged directory is moved to ``NAME/vN`` inside that
-transaction: on a local or POSIX shared filesystem the move is one atomic ``rename``; on object
-stores (s3://, gs://) it is a copy, still invisible to readers until the row commits. Readers go
+transaction that ends the job). The staged directory is moved to ``NAME/vN`` just before that
+commit, under the name's version lock (``JobStore.complete_merge``; on SQLite outside the
+transaction, so that a slow move blocks no write): on a local or POSIX shared filesystem the move
+is one atomic ``rename``; on object stores (s3://, gs://) it is a copy, still invisible to
+readers until the row commits. Readers go
 through the catalog and verify every file's sha256 (:func:`open_version`).
 """
 

@@ -11,14 +11,20 @@ version (``complete_merge``).
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Protocol
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Connection
 
 from service.store.base import StoreBase
-from service.store.errors import LeaseLost
+from service.store.engine import SQLITE_BUSY_TIMEOUT_MS
+from service.store.errors import LeaseLost, StoreError
 from service.store.records import FoldPosition, Lease, MediumProgress, StoredFile
 from service.store.states import JobState, TaskKind, TaskState
 from service.store.tables import dataset_versions, jobs, shard_results, tasks
@@ -36,7 +42,8 @@ class Publisher(Protocol):
         """Where version ``version`` will live."""
 
     def publish(self, version: int) -> None:
-        """Atomically make the staged files version ``version`` (called inside the DB transaction)."""
+        """Atomically make the staged files version ``version`` (before the commit of its row:
+        inside the transaction on PostgreSQL, outside any on SQLite; ``complete_merge``)."""
 
 
 class FoldMixin(StoreBase):
@@ -142,50 +149,109 @@ class FoldMixin(StoreBase):
         ]
 
     def complete_merge(self, lease: Lease, name: str, meta: dict, publisher: Publisher) -> int:
-        """Publish a dataset version and end the job ``succeeded``, in one transaction.
+        """Publish a dataset version and end the job ``succeeded``; returns the version number.
 
-        Inside it: fence the merge lease; take the per-name version lock (:meth:`_lock_name`),
-        so that ``version = max + 1`` over the name's rows (tombstones included) is read and
-        inserted by one publisher at a time: concurrent publishes of a name queue for it and
-        each gets the next number, none fails (no retry loop to exhaust); move the staged files
-        into place (``publisher.publish``); mark the job succeeded. If the process dies between
-        the move and the commit, the directory is an orphan no catalog row points to (the next
-        publisher of that version replaces it). Returns the version number.
+        The version number is ``max + 1`` over the name's rows (tombstones included), read and
+        inserted by one publisher of the name at a time (:meth:`_lock_name`): concurrent
+        publishes of a name queue for it and each gets the next number, none fails. The staged
+        files are moved into place (``publisher.publish``) before the commit that inserts the
+        catalog row, fences the merge lease and marks the job succeeded. If the process dies
+        between the move and the commit, the directory is an orphan no catalog row points to
+        (the next publisher of that version replaces it).
+
+        PostgreSQL: one transaction holding the job row and the name's advisory lock, which
+        block no other job's writes. SQLite, whose write lock is the whole database's: the move
+        happens outside any transaction, under a lock of the name in files beside the database
+        (:meth:`_sqlite_name_lock`), so a stalled move blocks no other write.
         """
         if lease.kind != TaskKind.MERGE:
             raise ValueError(f"complete_merge needs a merge lease; received a {lease.kind} lease")
+        if self.dialect_name == "sqlite":
+            with self._sqlite_name_lock(name):
+                with self._read() as conn:
+                    self._check_lease(conn, lease)  # a stale worker moves nothing over a live one
+                    version = self._next_version(conn, name)
+                publisher.publish(version)
+                with self._tx() as conn:
+                    self._lock_job(conn, lease.job_id)
+                    self._finish(conn, lease)
+                    if self._next_version(conn, name) != version:  # only complete_merge inserts rows
+                        raise StoreError(f"dataset {name!r} version {version} was taken during its publish")
+                    self._record_version(conn, lease, name, version, meta, publisher.uri_for(version))
+            return version
         with self._tx() as conn:
             self._lock_job(conn, lease.job_id)
             self._finish(conn, lease)
             self._lock_name(conn, name)
-            version = 1 + conn.execute(
-                sa.select(sa.func.coalesce(sa.func.max(dataset_versions.c.version), 0))
-                .where(dataset_versions.c.name == name)
-            ).scalar_one()
-            now = self._now()
-            conn.execute(
-                sa.insert(dataset_versions).values(
-                    name=name, version=version, uri=publisher.uri_for(version), created_at=now,
-                    job_id=lease.job_id, meta=meta,
-                )
-            )
+            version = self._next_version(conn, name)
             publisher.publish(version)
-            # Shards the merge no longer needs (the last medium met its target early):
-            # cancelled as skipped, so that every task of a finished job is resolved.
-            skipped = conn.execute(
-                sa.update(tasks).where(
-                    tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.SHARD,
-                    tasks.c.state.in_([TaskState.QUEUED, TaskState.LEASED, TaskState.WAITING]),
-                ).values(state=TaskState.CANCELLED, lease_expires_at=None, finished_at=now,
-                         error="skipped: its medium met the target error with fewer shards")
-            ).rowcount
-            conn.execute(
-                sa.update(jobs).where(jobs.c.id == lease.job_id).values(
-                    state=JobState.SUCCEEDED, finished_at=now, updated_at=now, folded=jobs.c.shards,
-                    dataset_name=name, dataset_version=version, shards_skipped=jobs.c.shards_skipped + skipped,
-                )
-            )
+            self._record_version(conn, lease, name, version, meta, publisher.uri_for(version))
         return version
+
+    def _check_lease(self, conn: Connection, lease: Lease) -> None:
+        """LeaseLost unless the lease is still ours (a read: the commit fences it again)."""
+        if conn.execute(sa.select(tasks.c.id).where(self._fenced(lease))).first() is None:
+            raise LeaseLost(lease.task_id, lease.token, "lease expired and re-claimed, or job cancelled")
+
+    @staticmethod
+    def _next_version(conn: Connection, name: str) -> int:
+        return 1 + conn.execute(
+            sa.select(sa.func.coalesce(sa.func.max(dataset_versions.c.version), 0))
+            .where(dataset_versions.c.name == name)
+        ).scalar_one()
+
+    def _record_version(self, conn: Connection, lease: Lease, name: str, version: int, meta: dict, uri: str) -> None:
+        """The catalog row of the version, its job succeeded (the merge task already finished)."""
+        now = self._now()
+        conn.execute(
+            sa.insert(dataset_versions).values(
+                name=name, version=version, uri=uri, created_at=now, job_id=lease.job_id, meta=meta,
+            )
+        )
+        # Shards the merge no longer needs (the last medium met its target early):
+        # cancelled as skipped, so that every task of a finished job is resolved.
+        skipped = conn.execute(
+            sa.update(tasks).where(
+                tasks.c.job_id == lease.job_id, tasks.c.kind == TaskKind.SHARD,
+                tasks.c.state.in_([TaskState.QUEUED, TaskState.LEASED, TaskState.WAITING]),
+            ).values(state=TaskState.CANCELLED, lease_expires_at=None, finished_at=now,
+                     error="skipped: its medium met the target error with fewer shards")
+        ).rowcount
+        conn.execute(
+            sa.update(jobs).where(jobs.c.id == lease.job_id).values(
+                state=JobState.SUCCEEDED, finished_at=now, updated_at=now, folded=jobs.c.shards,
+                dataset_name=name, dataset_version=version, shards_skipped=jobs.c.shards_skipped + skipped,
+            )
+        )
+
+    @contextmanager
+    def _sqlite_name_lock(self, name: str) -> Iterator[None]:
+        """Hold the SQLite store's version lock of dataset ``name``: ``flock`` of one of 256 files
+        in ``FILE-publish-locks/`` beside the database, chosen by the first byte of
+        sha256("bssrdf-dataset-version:" + name) (two names sharing it only publish one after
+        the other). Each call opens its own file, so threads exclude each other as processes do;
+        the kernel releases it when its process dies (kill -9 included); an SQLite store is on one
+        host, so every publisher sees the same files. Waits up to the busy timeout, then raises
+        :class:`StoreError` (the merge task is retried)."""
+        directory = Path(f"{self.engine.url.database}-publish-locks")
+        directory.mkdir(exist_ok=True)
+        digest = hashlib.sha256(f"bssrdf-dataset-version:{name}".encode()).hexdigest()
+        path = directory / f"{digest[:2]}.lock"
+        deadline = time.monotonic() + SQLITE_BUSY_TIMEOUT_MS / 1000
+        with open(path, "a+b") as f:
+            while True:
+                try:
+                    fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if time.monotonic() > deadline:
+                        raise StoreError(f"dataset {name!r}: another worker's publish holds its version lock "
+                                         f"({path}); the merge is retried") from None
+                    time.sleep(0.02)
+            try:
+                yield
+            finally:
+                fcntl.flock(f, fcntl.LOCK_UN)
 
     def _lock_name(self, conn: Connection, name: str) -> None:
         """Hold the version lock of dataset ``name`` until the end of the transaction.

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 
 import pyarrow.fs as pafs
 import pytest
@@ -148,4 +149,38 @@ def test_sigkill_while_publishing(spec, expected, tmp_path, point):
     assert not os.path.exists(storage.job_path(job_id))
     leftovers = storage.fs.get_file_info(pafs.FileSelector(f"{storage.root}/{spec.name}"))
     assert [f.base_name for f in leftovers] == ["v1"]  # no staging directory left behind
+    store.dispose()
+
+
+def test_a_worker_paused_at_publish_blocks_no_submission(spec, expected, tmp_path):
+    """A worker stopped inside the publish (files moved to NAME/v1, catalog row not committed)
+    holds no SQLite write lock: a ``POST /v1/jobs`` meanwhile is answered at once (it used to
+    wait out the 30 s busy timeout and get 503 "database is locked"); the job publishes after."""
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.settings import Settings
+    from tests.api.conftest import TINY_SPEC
+
+    db, storage_uri = f"sqlite:///{tmp_path / 'jobs.sqlite'}", str(tmp_path / "data")
+    job_id = stage_job(db, storage_uri, spec)
+    store, storage = JobStore(db), DatasetStorage(storage_uri)
+    victim = _paused_worker(db, storage_uri, tmp_path / "logs", "publish")
+    try:
+        app = create_app(Settings(database_url=db, storage_uri=storage_uri, api_tokens=["t" * 20]))
+        answers = []
+
+        def post() -> None:
+            with TestClient(app) as client:
+                answers.append(client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers={"Authorization": "Bearer " + "t" * 20}))
+
+        poster = threading.Thread(target=post, daemon=True)
+        poster.start()
+        poster.join(10)  # the busy timeout is 30 s: a blocked POST is still waiting here
+        assert not poster.is_alive(), "POST /v1/jobs waited for the paused publish"
+        assert answers[0].status_code == 201, answers[0].text
+    finally:
+        _kill(victim)
+    _rescue(store, storage, db, storage_uri, tmp_path / "logs2", job_id)
+    assert _published(store, storage, job_id) == expected
     store.dispose()
