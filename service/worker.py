@@ -32,8 +32,8 @@ from sqlalchemy.exc import DBAPIError
 from schema import SimulationSpec, parse_spec
 from service.datasets import DatasetStorage, JobFiles, run_merge_task
 from service.logs import configure_logging
-from service.settings import settings_or_exit
-from service.store import JobNotFound, JobStore, Lease, LeaseLost, TaskKind
+from service.settings import settings_or_exit, sqlite_url_for
+from service.store import JobNotFound, JobStore, Lease, LeaseLost, StoreUnavailable, TaskKind, open_store
 
 __all__ = ["Worker", "add_parser", "main", "compile_phase"]
 
@@ -402,6 +402,12 @@ def main(args: argparse.Namespace) -> int:
     if problem:
         print(f"bssrdf worker: {problem}", file=sys.stderr)
         return 2
+    url = args.db or settings.database_url
+    try:  # only the embedded default, jobs.sqlite in the data directory, creates its directory
+        store = open_store(url, create_dir=url == sqlite_url_for(settings.data_dir), fold_batch=settings.fold_batch)
+    except StoreUnavailable as exc:
+        print(f"bssrdf worker: {exc}", file=sys.stderr)
+        return 2
     configure_logging()
     # One worker process per core, one torch thread each: shards are independent, so processes
     # scale without per-step synchronisation, and the walk runs exactly as in `bssrdf simulate`.
@@ -410,7 +416,6 @@ def main(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     lease_seconds = args.lease_seconds or settings.lease_seconds
     heartbeat = args.heartbeat_seconds or (settings.heartbeat_seconds if not args.lease_seconds else None)
-    store = JobStore(args.db or settings.database_url, fold_batch=settings.fold_batch)
     storage = DatasetStorage(args.storage or settings.storage_uri)
     worker = Worker(
         store, storage, worker_id=args.worker_id, lease_seconds=lease_seconds, heartbeat_seconds=heartbeat,

@@ -25,9 +25,12 @@ from service.store.records import (
 from service.store.retry import RetryDecision, RetryPolicy, decide_retry
 from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
 from service.store.store import JobStore
+from service.store.opening import StoreUnavailable, open_store
 
 __all__ = [
     "JobStore",
+    "open_store",
+    "StoreUnavailable",
     "JobRecord",
     "JobProgress",
     "Submission",
