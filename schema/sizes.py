@@ -22,7 +22,8 @@ compression is rows x (8 bytes per numeric column + the strings), plus summary.j
 Both estimates are upper bounds of what Parquet and npz store (their encodings and zstd /
 deflate shrink them, by 5-50x on small test specs where most bins are empty; measured: the
 payload estimate is the arrays' exact size); the service refuses a spec whose estimate exceeds a configured
-limit (:func:`size_limit_problems`), so that no shard or merge outgrows a worker's memory or disk.
+limit (:func:`size_limit_problems`), so that no shard or merge outgrows a worker's memory or disk,
+and a job whose shard tasks (rows of the job store, all created at submission) exceed one.
 """
 
 from __future__ import annotations
@@ -88,13 +89,24 @@ def format_bytes(n: float) -> str:
     return f"{int(n)} B"
 
 
-def size_limit_problems(spec: SimulationSpec, max_shard_bytes: int, max_dataset_bytes: int) -> list[tuple[str, str, str, object]]:
-    """``(field, message, allowed, received)`` for each size limit ``spec`` exceeds (empty: fits).
+def size_limit_problems(spec: SimulationSpec, max_shard_bytes: int, max_dataset_bytes: int,
+                        max_tasks: int | None = None) -> list[tuple[str, str, str, object]]:
+    """``(field, message, allowed, received)`` for each size limit ``spec`` exceeds (empty: fits):
+    the shard payload, the dataset, and (``max_tasks``) the job's shard tasks, walk groups x
+    shards (schema.media), each a row of the job store created at submission.
 
     The message carries the estimate and says what shrinks it.
     """
     size = estimate_sizes(spec)
     out = []
+    tasks = spec.task_count()
+    if max_tasks is not None and tasks > max_tasks:
+        groups = tasks // spec.shards
+        out.append((
+            "spec.shards",
+            f"the job would have {tasks} shard tasks ({groups} walk groups x {spec.shards} shards, schema.media), "
+            f"over the limit {max_tasks} (BSSRDF_MAX_JOB_TASKS); use fewer shards per medium, shared walks or "
+            "fewer media (split the sweep)", f"shard tasks <= {max_tasks}", spec.shards))
     bins = (f"{spec.bins.radial.count} x {spec.theta_s_count()} x {spec.bins.cos_theta_o.count} x "
             f"{spec.bins.phi_o.count} bins (n_r x n_theta_s x n_cos x n_phi)")
     if size.shard_payload_bytes > max_shard_bytes:

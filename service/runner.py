@@ -200,7 +200,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     from schema.sizes import size_limit_problems
 
-    too_big = size_limit_problems(spec, settings.max_shard_bytes, settings.max_dataset_bytes)
+    too_big = size_limit_problems(spec, settings.max_shard_bytes, settings.max_dataset_bytes, settings.max_job_tasks)
     if too_big:  # refused before anything is stored, as the API refuses it
         print("error: " + "\n  ".join(f"{field}: {message}" for field, message, _, _ in too_big), file=sys.stderr)
         return 2

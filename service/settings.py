@@ -16,6 +16,7 @@ see deploy/README.md, "Limits")::
     BSSRDF_MAX_BODY_BYTES=1048576            request body (413 before it is parsed)
     BSSRDF_MAX_SHARD_BYTES=2000000000        estimated shard tally before compression (schema.sizes)
     BSSRDF_MAX_DATASET_BYTES=100000000000    estimated dataset tables before compression
+    BSSRDF_MAX_JOB_TASKS=50000               shard tasks of one job (walk groups x shards)
 
 Shard results (files in dataset storage under .jobs/<job id>/, removed once the version is
 published unless BSSRDF_KEEP_SHARD_FILES=true); BSSRDF_FOLD_BATCH=8: the merge folds shards in
@@ -36,6 +37,8 @@ from typing import Annotated, Any
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict, SettingsError
+
+from schema.spec import MAX_TASKS
 
 __all__ = ["Settings", "get_settings", "settings_or_exit", "sqlite_url_for", "DEFAULT_DATA_DIR"]
 
@@ -86,6 +89,9 @@ class Settings(BaseSettings):
     max_dataset_bytes: int = Field(
         100_000_000_000, ge=1, description="Most estimated bytes of a dataset version's tables before "
         "compression (schema.sizes).")
+    max_job_tasks: int = Field(
+        50_000, ge=1, le=MAX_TASKS, description="Most shard tasks of one job (walk groups x shards, schema.media): "
+        "each is a row of the job store created at submission (BENCHMARKS.md, job creation).")
     keep_shard_files: bool = Field(
         False, description="Keep a job's shard results, fold and parts (storage .jobs/<job id>/) after its "
         "version is published (default: removed).")

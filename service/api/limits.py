@@ -7,7 +7,8 @@
                          shard CPU time (:func:`schema.estimate.estimate_shard`) is beyond
                          ``max_shard_cpu_seconds``, or whose estimated shard payload or dataset size
                          (:func:`schema.sizes.size_limit_problems`) is beyond ``max_shard_bytes`` /
-                         ``max_dataset_bytes``; each names the field, the limit and the value
+                         ``max_dataset_bytes``, or whose shard tasks are over ``max_job_tasks``;
+                         each names the field, the limit and the value
 
 Every limit is a setting (``service/settings.py``) documented in deploy/README.md, "Limits".
 """
@@ -109,5 +110,5 @@ def spec_limit_problems(spec: SimulationSpec, settings: Settings) -> list[dict[s
             "shards, or fewer photons or bins",
             allowed=f"estimated CPU seconds per shard <= {settings.max_shard_cpu_seconds:g}", received=spec.shards))
     out += [problem(field, message, allowed=allowed, received=received) for field, message, allowed, received in
-            size_limit_problems(spec, settings.max_shard_bytes, settings.max_dataset_bytes)]
+            size_limit_problems(spec, settings.max_shard_bytes, settings.max_dataset_bytes, settings.max_job_tasks)]
     return out

@@ -209,3 +209,26 @@ def test_shard_payload_and_dataset_size_limits_name_the_estimates(make_client, s
     assert job_count(store) == 0
     fits = make_client(store, storage, max_shard_bytes=est.shard_payload_bytes, max_dataset_bytes=est.dataset_bytes)
     assert fits.post("/v1/jobs", json={"spec": spec}, headers=AUTH).status_code == 201
+
+
+def test_the_issue_spec_of_983040_tasks_is_refused_naming_the_task_limit(client, store):
+    """1024 albedos x 64 g x 15 shards with independent walks: 983 040 shard tasks, once stored in
+    one transaction of 25 s; now over BSSRDF_MAX_JOB_TASKS (default 50 000) at submission."""
+    spec = tiny_spec(photons=30, shards=15, batches_per_shard=2)
+    spec.pop("medium")
+    spec["sweep"] = {"albedo": {"count": 1024}, "g": [i / 64 for i in range(64)], "eta": [1.3], "walks": "independent"}
+    p = one_problem(client.post("/v1/jobs", json={"spec": spec}, headers=AUTH), "spec.shards")
+    assert "983040 shard tasks (65536 walk groups x 15 shards" in p["message"], p
+    assert "50000" in p["message"] and "BSSRDF_MAX_JOB_TASKS" in p["message"], p
+    assert p["allowed"] == "shard tasks <= 50000" and p["received"] == 15, p
+    assert job_count(store) == 0
+
+
+def test_task_limit_is_a_setting(make_client, store, storage):
+    spec = tiny_spec(shards=4, photons=100, batches_per_shard=2)
+    client = make_client(store, storage, max_job_tasks=3)
+    p = one_problem(client.post("/v1/jobs", json={"spec": spec}, headers=AUTH), "spec.shards")
+    assert "4 shard tasks (1 walk groups x 4 shards" in p["message"] and p["allowed"] == "shard tasks <= 3", p
+    assert job_count(store) == 0
+    fits = make_client(store, storage, max_job_tasks=4)
+    assert fits.post("/v1/jobs", json={"spec": spec}, headers=AUTH).status_code == 201
