@@ -50,10 +50,6 @@ class SizeEstimate:
     rows: int  # table rows of the dataset (radial + bins + summary)
 
 
-def _estimators(spec: SimulationSpec) -> list[str]:
-    return ["exits", "connections"] if spec.estimator == "both" else [spec.estimator]
-
-
 def _row_bytes(schema, channel_chars: float, estimator_chars: float) -> float:
     """Bytes of one row before compression: 8 per numeric column plus the strings."""
     strings = {"estimator": estimator_chars, "channel": channel_chars, "component": _COMPONENT_CHARS}
@@ -62,7 +58,7 @@ def _row_bytes(schema, channel_chars: float, estimator_chars: float) -> float:
 
 def estimate_sizes(spec: SimulationSpec) -> SizeEstimate:
     """The shard payload (largest medium) and dataset size of ``spec`` (module docstring)."""
-    est = _estimators(spec)
+    est = spec.table_estimators
     n_r, n_t = spec.bins.radial.count, spec.theta_s_count()
     n_c, n_p = spec.bins.cos_theta_o.count, spec.bins.phi_o.count
     n_angles = len(spec.incidence_deg)

@@ -128,6 +128,12 @@ class SimulationSpec(BaseModel):
         "(photons is then the cap); see schema/target.py.",
     )
 
+    @property
+    def table_estimators(self) -> tuple[str, ...]:
+        """The values of the tables' ``estimator`` column this spec gives: ``"both"`` is exits
+        and connections on one walk, every other estimator itself."""
+        return ("exits", "connections") if self.estimator == "both" else (self.estimator,)
+
     @model_validator(mode="before")
     @classmethod
     def _one_medium_form(cls, data: Any) -> Any:

@@ -333,7 +333,7 @@ class Worker:
 
     def _walk(self, lease: Lease, progress) -> tuple[bytes, int, float]:
         """Walk the leased shard: its tally's bytes, its photons and the walk's seconds
-        (``service.bench_fleet`` puts an instant fake here to load the queue alone)."""
+        (``bench.fleet`` puts an instant fake here to load the queue alone)."""
         # Deferred, not a cycle: workers.sweep imports torch (seconds), and building the `bssrdf`
         # parser imports this module; only a process that runs a shard pays for it.
         from workers.kernels import observe_compiles

@@ -1,4 +1,4 @@
-"""The package graph runs one way, schema <- workers <- service (pyproject's import-linter
+"""The package graph runs one way, schema <- workers <- service <- bench (pyproject's import-linter
 contract, which sees every import, function-local ones included)."""
 
 from __future__ import annotations

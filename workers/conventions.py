@@ -54,11 +54,11 @@ Random numbers
     free path, decision, cos(theta), phi); purposes >= 1 are the connection samples at a vertex.
 """
 
-COMPONENTS = ("single", "multiple")
-"""Tallied components, in array order; ``total`` is derived."""
+TALLIED_COMPONENTS = ("single", "multiple")
+"""Components the tallies hold, in array order; ``total`` (schema.COMPONENTS) is their sum."""
 
 PURPOSE_WALK = 0
 PURPOSE_CONNECT = 1
 """Counter word c3: 0 for walk steps, 1 + k for the k-th block of connection samples."""
 
-__all__ = ["COMPONENTS", "PURPOSE_WALK", "PURPOSE_CONNECT"]
+__all__ = ["TALLIED_COMPONENTS", "PURPOSE_WALK", "PURPOSE_CONNECT"]

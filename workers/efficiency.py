@@ -30,14 +30,13 @@ import time
 import numpy as np
 import torch
 
-from schema import SimulationSpec
+from schema import ESTIMATORS, SimulationSpec
 
 from .bench import MEDIA
 from .simulate import simulate
 
-__all__ = ["ESTIMATORS", "efficiency", "table", "worst_hybrid_ratio", "main"]
+__all__ = ["efficiency", "table", "worst_hybrid_ratio", "main"]
 
-ESTIMATORS = ("hybrid", "exits", "connections")
 
 
 def _run(medium: str, estimator: str, photons: int, radial: dict, incidence: float, n_theta: int) -> tuple[object, float]:

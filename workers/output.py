@@ -15,7 +15,7 @@ import pyarrow as pa
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 
-from schema import BINS_SCHEMA, RADIAL_SCHEMA, SUMMARY_SCHEMA, table_metadata
+from schema import BINS_SCHEMA, COMPONENTS, RADIAL_SCHEMA, SUMMARY_SCHEMA, table_metadata
 from schema.version import code_version
 
 from .finite import check_finite
@@ -28,7 +28,6 @@ __all__ = [
     "s_infinite_variance",
 ]
 
-COMPONENTS3 = ("single", "multiple", "total")
 TABLE_FILES = ("radial.parquet", "bins.parquet", "summary.parquet", "summary.json")
 
 
@@ -39,7 +38,7 @@ def _keys(result: Result):
     for est in result.estimators:
         for cfg in range(c.n):
             ch = c.channel_of(cfg)
-            for k, comp in enumerate(COMPONENTS3):
+            for k, comp in enumerate(COMPONENTS):
                 keys = {
                     "estimator": est, "medium": int(result.medium_index), "albedo": float(c.albedo[cfg]),
                     "g": float(c.g[cfg]), "eta": float(c.eta), "incidence_deg": c.incidence_of(cfg),

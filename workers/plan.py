@@ -147,7 +147,7 @@ class ShardPlan:
     def build(cls, spec: SimulationSpec, shard_index: int) -> "ShardPlan":
         cfgs, layout = build_configs(spec), bin_layout(spec)
         start, stop = spec.shard_photon_range(shard_index)
-        estimators = ("exits", "connections") if spec.estimator == "both" else (spec.estimator,)
+        estimators = spec.table_estimators
         compiled = compile_enabled()
         connect = "connections" in estimators
         chunk = CONNECT_CHUNK if connect else CHUNK if compiled else EAGER_CHUNK

@@ -24,11 +24,11 @@ from .engine import init_engine
 from .harvest import exit_function, finish_function
 from .hybrid import entries_function
 from .reweight import MemberTallies, member_prefix
-from .plan import CHUNK, EXIT_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, Configs, ShardPlan, build_configs
+from .plan import EXIT_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
 from .tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
 from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
-__all__ = ["run_shard", "ShardPlan", "Configs", "build_configs", "CHUNK", "VERTEX_CHUNK"]
+__all__ = ["run_shard"]
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from schema import SpecError, load_spec
+from schema import COMPONENTS, SpecError, load_spec
 
 from .cores import default_workers
 
@@ -185,7 +185,7 @@ def format_summary(doc: dict, max_rows: int = 60) -> str:
             lines.append(f"... {len(rows) - max_rows} more rows (all of them in summary.json / summary.parquet)")
             break
         cells = [f"{comps[c]['Rd']:.5f} +- " + ("    n/a" if comps[c]["Rd_stderr"] is None else f"{comps[c]['Rd_stderr']:.5f}")
-                 for c in ("single", "multiple", "total")]  # fmt: skip
+                 for c in COMPONENTS]  # fmt: skip
         total = comps["total"]
         prefix = f"{medium:>6} {total['albedo']:>8.5f} {total['g']:>6.3f} {total['eta']:>6.3f}  " if sweep else ""
         lines.append(f"{prefix}{est:<12}{inc:>8.1f} {ch:<4}{total['R_spec']:>9.5f}  {cells[0]:>20}  {cells[1]:>20}  {cells[2]:>20}")

@@ -105,7 +105,7 @@ class Lanes:
 
 @dataclass(frozen=True)
 class ConfigTable:
-    """Per-configuration constants as tensors indexed by configuration (see workers.shard)."""
+    """Per-configuration constants as tensors indexed by configuration (built by workers.plan)."""
 
     albedo: torch.Tensor  # float32
     g: torch.Tensor  # float32

@@ -59,7 +59,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """A configured app; raises :class:`InsecureBindError` on an unsafe auth configuration.
 
     ``settings`` (default: the cached :func:`service.settings.get_settings`) is checked here and
-    kept in ``app.state.settings``, where every request reads it (:func:`service.api.deps.get_settings`).
+    kept in ``app.state.settings``, where every request reads it (:func:`service.api.deps.app_settings`).
     """
     effective = settings if settings is not None else get_settings()
     check_auth_config(effective)

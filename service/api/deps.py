@@ -1,6 +1,6 @@
 """Dependencies of the routes, as ``Annotated`` aliases.
 
-    SettingsDep   the app's settings, ``app.state.settings`` (tests may override :func:`get_settings`)
+    SettingsDep   the app's settings, ``app.state.settings`` (tests may override :func:`app_settings`)
     StoreDep      the app's JobStore (one per process, created on first use)
     StorageDep    the app's DatasetStorage
     AuthDep       a bearer token from ``settings.api_tokens``: mutating endpoints
@@ -38,21 +38,21 @@ from service.store import JobNotFound, JobRecord, JobStore
 
 __all__ = [
     "SettingsDep", "StoreDep", "StorageDep", "AuthDep", "ReadAuthDep", "JobDep", "JobIdPath", "JOB_ID_PATTERN",
-    "get_settings", "get_store", "token_fingerprint", "get_storage", "require_token", "require_read_token", "job_or_404",
+    "app_settings", "get_store", "token_fingerprint", "get_storage", "require_token", "require_read_token", "job_or_404",
     "lookup_job",
     "Resources", "API_POOL_SIZE",
 ]
 
 
 
-async def get_settings(request: Request) -> Settings:
+async def app_settings(request: Request) -> Settings:
     """The settings :func:`service.api.app.create_app` was made with. Read from the app's state,
     not installed as a dependency override: FastAPI analyses an overridden dependency's
     signature again on every request (a third of a status read's CPU time, BENCHMARKS.md)."""
     return request.app.state.settings
 
 
-SettingsDep = Annotated[Settings, Depends(get_settings)]
+SettingsDep = Annotated[Settings, Depends(app_settings)]
 
 
 @contextmanager

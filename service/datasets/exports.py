@@ -26,7 +26,7 @@ from pathlib import Path
 from service.datasets.storage import DatasetStorage, check_sha256, open_version, sha256_bytes, verified_path
 from service.store import DatasetVersionRecord, ExportRecord, JobStore
 from service.store.errors import ChecksumMismatch
-from workers.exports import FORMATS, MANIFEST, ExportError, ExportSource, write_export
+from workers.exports import MANIFEST, ExportError, ExportSource, check_format, write_export
 from workers.exports.source import TABLES
 
 __all__ = ["ensure_export", "read_export", "extract_export", "export_archive", "EXPORT_DIR"]
@@ -64,8 +64,7 @@ def ensure_export(store: JobStore, storage: DatasetStorage, name: str, version: 
     """The stored export ``fmt`` of a version (the latest if ``version`` is None), made and
     stored first if it does not exist. Raises VersionNotFound, ChecksumMismatch (the version's
     tables are corrupt), ExportError (the dataset cannot be exported so; the message says why)."""
-    if fmt not in FORMATS:
-        raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    check_format(fmt)
     record = store.get_version(name, version)
     existing = store.get_export(record.name, record.version, fmt)
     if existing is not None:

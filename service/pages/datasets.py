@@ -30,7 +30,7 @@ from service.pages.jobs import require_read
 from service.pages.plots import KINDS, plot_figures, svg_bytes
 from service.pages.render import page
 from service.store import DatasetVersionRecord, JobStore, VersionDeleted, VersionNotFound
-from workers.exports import FORMATS, ExportError, MissingDependency
+from workers.exports import FORMATS, ExportError, MissingDependency, UnknownFormat
 
 __all__ = ["router", "summary_rows", "SUMMARY_ROWS"]
 
@@ -170,10 +170,10 @@ def download_export(request: Request, name: str, version: str, fmt: str, setting
                     store: StoreDep, storage: StorageDep) -> Response:
     require_read(request, settings)
     record = _version(store, name, version)
-    if fmt not in FORMATS:
-        raise PageError(404, f"export format must be one of {', '.join(FORMATS)}; received {fmt[:40]!r}")
     try:
         record, export = ensure_export(store, storage, record.name, record.version, fmt)
+    except UnknownFormat as exc:
+        raise PageError(404, str(exc)) from None
     except MissingDependency as exc:
         raise PageError(501, f"{exc} on this server") from None
     except ExportError as exc:

@@ -27,7 +27,7 @@ import sqlalchemy as sa
 from sqlalchemy import event
 from sqlalchemy.engine import Engine, make_url
 
-__all__ = ["make_engine", "db_now", "is_sqlite", "SQLITE_BUSY_TIMEOUT_MS", "READ_ONLY", "PG_CONNECT_ARGS"]
+__all__ = ["make_engine", "db_now", "SQLITE_BUSY_TIMEOUT_MS", "READ_ONLY", "PG_CONNECT_ARGS"]
 
 SQLITE_BUSY_TIMEOUT_MS = 30_000
 
@@ -43,12 +43,6 @@ short, planning them costs little; BENCHMARKS.md, fleet claims)."""
 
 READ_ONLY = "bssrdf_read_only"
 """Execution option of a connection that only reads (``StoreBase._read``)."""
-
-
-def is_sqlite(engine_or_dialect) -> bool:
-    """True if the engine (or dialect) is SQLite."""
-    dialect = getattr(engine_or_dialect, "dialect", engine_or_dialect)
-    return dialect.name == "sqlite"
 
 
 def db_now(dialect) -> sa.ColumnElement[float]:

@@ -66,11 +66,11 @@ def test_reads_closed_need_a_token(make_client, sqlite_store, storage):
 
 
 def test_settings_come_from_the_overridable_get_settings(make_client, sqlite_store, storage):
-    from service.api.deps import get_settings
+    from service.api.deps import app_settings
 
     client = make_client(sqlite_store, storage)
     assert client.get("/v1/jobs").status_code == 200
-    client.app.dependency_overrides[get_settings] = lambda: Settings(api_tokens=[TOKEN], read_open=False)
+    client.app.dependency_overrides[app_settings] = lambda: Settings(api_tokens=[TOKEN], read_open=False)
     _assert_401(client.get("/v1/jobs"))
 
 

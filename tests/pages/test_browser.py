@@ -71,12 +71,13 @@ def service(tmp_path):
         except httpx.TransportError:
             return False
 
-    def start_worker():
+    def start_worker(**extra_env: str) -> subprocess.Popen:
         with open(tmp_path / "worker.log", "ab") as out:
             procs.append(subprocess.Popen(
                 [sys.executable, "-m", "service.cli", "worker", "--db", db, "--storage", storage, "--poll-seconds",
                  "0.1", "--max-poll-seconds", "0.5", "--lease-seconds", "30"],
-                cwd=tmp_path, env=env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL))
+                cwd=tmp_path, env={**env, **extra_env}, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL))
+        return procs[-1]
 
     try:
         wait_for(up, 30, "bssrdf serve to be ready", poll=0.2)
@@ -100,7 +101,12 @@ def test_a_sweep_from_submission_to_its_figures_and_exports(service):
         assert _live_state(driver) == ("true", "queued")
         assert "waiting for a worker" in driver.find_element("id", "status").text
         driver.execute_script("window.__sameDocument = 'yes';")  # gone if the page reloads
-        start_worker()
+        # The walk of 400 photons takes less than the page's poll, so the worker stops itself with
+        # the tables staged (service/faults.py) until the page has shown the job under way.
+        worker = start_worker(BSSRDF_TEST_PAUSE_AT="staged")
+        wait_for(lambda: _live_state(driver)[1] == "merging", 240, "the job page to show the merge under way",
+                 poll=0.25)
+        os.kill(worker.pid, signal.SIGCONT)
         states = set()
 
         def ended():
@@ -110,8 +116,7 @@ def test_a_sweep_from_submission_to_its_figures_and_exports(service):
 
         assert wait_for(ended, 240, "the job page to show the job ended", poll=0.25) == "succeeded"
         assert driver.execute_script("return window.__sameDocument") == "yes"  # updated in place
-        assert states & {"running", "merging"}, states  # it showed the job under way, then done
-        assert driver.find_element("id", "shards").text == "4 / 4"
+        assert driver.find_element("id", "shards").text == "2 / 2"  # both albedos share one walk of 2 shards
         assert console_errors(driver) == []
 
         # the description is text on the job page

@@ -1,9 +1,9 @@
-"""The queue benchmark (service/bench_queue.py) runs against the current job store: it claims and
+"""The queue benchmark (bench/queue.py) runs against the current job store: it claims and
 commits every shard of its job (it had broken silently when shard results became files)."""
 
 from __future__ import annotations
 
-from service.bench_queue import bench_store
+from bench.queue import bench_store
 from service.store import JobStore
 
 

@@ -1,10 +1,10 @@
-"""The claim path with a fleet of simulated workers (service/bench_fleet.py): threads in two
+"""The claim path with a fleet of simulated workers (bench/fleet.py): threads in two
 processes, each worker its own job store, claiming and committing instant shards whose files go
 through dataset storage, against PostgreSQL through a private pgbouncer configured from
 deploy/pgbouncer/pgbouncer.ini (transaction pooling), and directly with a bounded connection
 budget. Every shard is claimed once and completed once (as the workers saw it and as the
 database records it), every job publishes one version, no job file is left, and no worker
-meets an error. Figures at 1,000 workers: `python -m service.bench_fleet`, in BENCHMARKS.md.
+meets an error. Figures at 1,000 workers: `python -m bench.fleet`, in BENCHMARKS.md.
 
 Budget: about 10 s per test here (100 workers, 4 jobs of 25 shards).
 """
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import pytest
 
-from service.bench_fleet import run_fleet
-from service.pooler import pgbouncer_unavailable
+from bench.fleet import run_fleet
+from bench.pooler import pgbouncer_unavailable
 from tests.service.conftest import PG_ENV, pg_base_url
 
 pytestmark = pytest.mark.postgres

@@ -1,4 +1,4 @@
-"""Load on the real service (service/bench_load.py): a `bssrdf serve` process and two worker
+"""Load on the real service (bench/load.py): a `bssrdf serve` process and two worker
 processes; concurrent clients submit jobs of tiny specs (distinct seeds) and read their status
 while the workers run them. No request fails, and afterwards every job succeeded once, every task
 was claimed once and completed once, and the photons counted are the photons asked for.
@@ -6,10 +6,10 @@ was claimed once and completed once, and the photons counted are the photons ask
 Latency is not asserted here: speed is measured by benchmark commands, not by timed tests (a
 percentile of a 2-core machine's request latencies depends on whatever else runs on it; on
 PostgreSQL the status read p99 at 4 clients sits at 45-50 ms on this machine, against the 50 ms
-bar). `python -m service.bench_load` prints the percentiles; BENCHMARKS.md records them.
+bar). `python -m bench.load` prints the percentiles; BENCHMARKS.md records them.
 
 CI budget: JOBS submissions and 10 x JOBS status reads per backend (about 30 s each here when the
-machine is otherwise idle); the full 1,000 / 10,000 run is `python -m service.bench_load`, whose
+machine is otherwise idle); the full 1,000 / 10,000 run is `python -m bench.load`, whose
 figures are in BENCHMARKS.md.
 """
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import pytest
 
-from service.bench_load import run_load
+from bench.load import run_load
 
 pytestmark = pytest.mark.slow
 

@@ -10,7 +10,7 @@ import hashlib
 import pyarrow.fs as pafs
 import pytest
 
-from service.bench_merge import bench_spec, stage_job
+from bench.merge import bench_spec, stage_job
 from service.datasets import DatasetStorage, JobFiles
 from service.store import JobState, JobStore, RetryPolicy, StoredFile, VersionNotFound
 from service.worker import Worker

@@ -14,7 +14,7 @@ import threading
 import pyarrow.fs as pafs
 import pytest
 
-from service.bench_merge import bench_spec, measure, stage_job
+from bench.merge import bench_spec, measure, stage_job
 from service.datasets import DatasetStorage, open_version, run_merge_task
 from service.faults import PAUSE_ENV
 from service.runner import start_workers, stop_workers

@@ -9,7 +9,7 @@ import numpy as np
 import pyarrow.fs as pafs
 import pytest
 
-from service.bench_merge import bench_spec
+from bench.merge import bench_spec
 from service.datasets import DatasetStorage, JobFiles
 from service.store import JobState, JobStore, RetryPolicy, VersionNotFound
 from service.worker import Worker

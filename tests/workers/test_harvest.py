@@ -150,7 +150,7 @@ def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
     run out, the rest become EMPTY, running lanes are untouched."""
     from workers.bench import _spec
     from workers.harvest import finish_and_refill
-    from workers.shard import build_configs
+    from workers.plan import build_configs
     from workers.walk import RUNNING, TRUNCATED
 
     bins, _, _ = _bins()

@@ -9,7 +9,8 @@ import numpy as np
 import torch
 
 from workers.hybrid import photon_entries
-from workers.shard import ShardPlan, _Runner
+from workers.plan import ShardPlan
+from workers.shard import _Runner
 from workers.tally import PhotonAccumulator, photon_moments
 from workers.walk import EMPTY, RUNNING
 

@@ -20,7 +20,8 @@ from pathlib import Path
 
 from .source import ExportError, ExportSource
 
-__all__ = ["FORMATS", "write_export", "ExportError", "ExportSource", "MissingDependency", "MANIFEST"]
+__all__ = ["FORMATS", "write_export", "check_format", "ExportError", "ExportSource", "MissingDependency",
+           "UnknownFormat", "MANIFEST"]
 
 FORMATS: dict[str, str] = {
     "pbrt": "workers.exports.pbrt:write_pbrt",
@@ -41,9 +42,20 @@ class MissingDependency(ExportError):
     """A format needs a package that is not installed (the message names the extra)."""
 
 
-def _writer(fmt: str):
+class UnknownFormat(ExportError):
+    """The format is not one of :data:`FORMATS` (the message lists them)."""
+
+
+def check_format(fmt: str) -> None:
+    """UnknownFormat unless ``fmt`` names a format of :data:`FORMATS` (the one check every
+    caller uses: the CLI, the API, the pages and the dataset store)."""
     if fmt not in FORMATS:
-        raise ExportError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
+        received = fmt if len(fmt) <= 40 else fmt[:40] + "..."
+        raise UnknownFormat(f"unknown export format {received!r}: must be one of {', '.join(FORMATS)}")
+
+
+def _writer(fmt: str):
+    check_format(fmt)
     module, func = FORMATS[fmt].split(":")
     try:
         return getattr(importlib.import_module(module), func)

@@ -17,12 +17,12 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 
+from .profiles import KEY_COLUMNS
 from .source import ExportError, table_arrays
 
 __all__ = ["Grid", "table_grid", "KEY_AXES", "BIN_AXES"]
 
 KEY_AXES = ("estimator", "medium", "incidence", "channel", "component")
-_KEY_COLUMNS = ("estimator", "medium", "incidence_deg", "channel", "component")
 _COORDS = {"albedo", "g", "eta"}
 BIN_AXES = {
     "radial": (("r", "r_lo_mm", "r_hi_mm"),),
@@ -60,12 +60,12 @@ def table_grid(table: pa.Table, name: str) -> Grid:
     cols = table_arrays(table)
     bin_axes = BIN_AXES[name]
     edge_cols = {c for _a, lo, hi in bin_axes for c in (lo, hi)}
-    value_names = [c for c in table.schema.names if c not in _KEY_COLUMNS and c not in _COORDS and c not in edge_cols]
-    keys = {axis: np.array(_unique_in_order(cols[col].tolist())) for axis, col in zip(KEY_AXES, _KEY_COLUMNS)}
+    value_names = [c for c in table.schema.names if c not in KEY_COLUMNS and c not in _COORDS and c not in edge_cols]
+    keys = {axis: np.array(_unique_in_order(cols[col].tolist())) for axis, col in zip(KEY_AXES, KEY_COLUMNS)}
     keys["medium"] = np.sort(keys["medium"].astype(np.int64))
     keys["incidence"] = np.sort(keys["incidence"].astype(np.float64))
     index = {axis: {v: i for i, v in enumerate(keys[axis].tolist())} for axis in KEY_AXES}
-    key_idx = [np.array([index[axis][v] for v in cols[col].tolist()]) for axis, col in zip(KEY_AXES, _KEY_COLUMNS)]
+    key_idx = [np.array([index[axis][v] for v in cols[col].tolist()]) for axis, col in zip(KEY_AXES, KEY_COLUMNS)]
     key_shape = tuple(len(keys[a]) for a in KEY_AXES)
     flat_key = np.ravel_multi_index(key_idx, key_shape)
     rows_per_key = len(flat_key) // len(np.unique(flat_key))

@@ -37,6 +37,7 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
+from schema import COMPONENTS
 from workers.diffusion import dipole_rd, pbd_multiple, pbd_rd, pbd_single
 
 from .albedo_map import AlbedoMap, albedo_maps
@@ -47,7 +48,6 @@ __all__ = ["write_plots", "figures", "line_gid", "MAX_SERIES"]
 
 MAX_SERIES = 6
 """Most series drawn in one panel (a sweep's albedos are thinned to this many)."""
-_COMPONENTS = ("single", "multiple", "total")
 _RC = {"svg.hashsalt": "bssrdf-db", "font.size": 9, "axes.titlesize": 9}
 
 
@@ -115,7 +115,7 @@ def _rd_figure(source, radial, summary, e, i, series, title) -> Figure:
     colours = matplotlib.colormaps["viridis"](np.linspace(0, 0.9, len(series)))
     limits = _rd_range(radial, e, i, series)
     bottom = limits[0] if limits else 0.0
-    for ax, comp in zip(axes, _COMPONENTS):
+    for ax, comp in zip(axes, COMPONENTS):
         k = list(radial.keys["component"]).index(comp)
         for colour, (m, c, _a) in zip(colours, series):
             lo, hi = radial.edges["r"][0][m, c], radial.edges["r"][1][m, c]

@@ -19,7 +19,7 @@ from service.api.models import DatasetPublic, DatasetVersionDetail, DatasetVersi
 from service.datasets import expected_files
 from service.datasets.exports import ensure_export
 from service.store import DatasetVersionRecord, JobStore, VersionDeleted, VersionNotFound
-from workers.exports import FORMATS, ExportError, MissingDependency
+from workers.exports import FORMATS, ExportError, MissingDependency, UnknownFormat
 
 __all__ = ["router", "parse_version", "NamePath", "VersionPath", "VERSION_MAX"]
 
@@ -142,10 +142,10 @@ def download_export(_token: ReadAuthDep, request: Request, name: NamePath, versi
     and Range as for the version's files. 422 when the dataset cannot be exported in this format
     (the message says what the spec needs), 501 when the server lacks an optional package."""
     record = _version(store, name, version)
-    if format not in FORMATS:
-        raise _format_problem(format, f"export format must be one of {', '.join(FORMATS)}; received {shorten(format)!r}")
     try:
         record, export = ensure_export(store, storage, record.name, record.version, format)
+    except UnknownFormat as exc:
+        raise _format_problem(format, str(exc)) from None
     except MissingDependency as exc:
         raise HTTPException(501, f"{exc} on the API server") from None
     except ExportError as exc:

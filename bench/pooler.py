@@ -1,5 +1,5 @@
 """A pgbouncer process of one's own in front of a PostgreSQL server, configured from
-``deploy/pgbouncer/pgbouncer.ini`` (for ``service.bench_fleet`` and its test).
+``deploy/pgbouncer/pgbouncer.ini`` (for ``bench.fleet`` and its test).
 
     with Pgbouncer("postgresql+psycopg://postgres@127.0.0.1:5432/test", "bench_db") as pool:
         pool.url        # postgresql+psycopg://postgres@127.0.0.1:PORT/bssrdf, through the pooler

@@ -1,7 +1,7 @@
 """The claim path at fleet scale: many simulated workers claiming and committing shards against
 PostgreSQL, through pgbouncer (deploy/pgbouncer/pgbouncer.ini) or a bounded connection budget.
 
-    python -m service.bench_fleet [--workers 1000] [--jobs 40] [--shards 150] [--processes 2]
+    python -m bench.fleet [--workers 1000] [--jobs 40] [--shards 150] [--processes 2]
                                   [--pooler pgbouncer | --pooler budget --budget 20] [--pg URL]
 
 Real: the worker's loop (``service.worker.Worker.loop`` and ``process``: claim, a heartbeat
@@ -37,7 +37,7 @@ import threading
 import time
 from collections import Counter
 
-from service.bench_load import cpu_seconds, percentile
+from bench.load import cpu_seconds, percentile
 from service.datasets import DatasetStorage, JobFiles, ResultWindow
 from service.store import JobStore, LeaseLost, TaskKind
 from service.worker import Worker
@@ -232,7 +232,7 @@ def run_fleet(pg_url: str, *, workers: int = 1000, jobs: int = 40, shards: int =
     """Create a database and (``pooler="pgbouncer"``) a pgbouncer, submit ``jobs`` x ``shards``,
     run the simulated fleet, check, clean up; the figures (module docstring)."""
     from schema.sizes import estimate_sizes
-    from service.pooler import Pgbouncer, database_url, drop_database, fresh_database
+    from bench.pooler import Pgbouncer, database_url, drop_database, fresh_database
 
     if pooler not in ("pgbouncer", "budget"):
         raise ValueError(f"pooler must be 'pgbouncer' or 'budget'; received {pooler!r}")
@@ -382,7 +382,7 @@ def _checks_ok(report: dict, total: int) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m service.bench_fleet", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.fleet", description=__doc__.split("\n\n")[0])
     p.add_argument("--pg", default=os.environ.get("BSSRDF_TEST_POSTGRES_URL"),
                    help="PostgreSQL server URL (default BSSRDF_TEST_POSTGRES_URL); a fresh database is made on it")
     p.add_argument("--workers", type=int, default=1000, help="simulated workers (threads)")

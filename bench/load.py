@@ -1,6 +1,6 @@
 """Load on the real service: concurrent clients submit jobs and read their status while workers run.
 
-    python -m service.bench_load [--db URL] [--jobs 1000] [--reads 10000] [--clients 16] [--workers 2]
+    python -m bench.load [--db URL] [--jobs 1000] [--reads 10000] [--clients 16] [--workers 2]
 
 Starts ``bssrdf serve`` (uvicorn, one process) on a free loopback port and ``--workers`` worker
 processes against the same store (``--db``: default a temporary SQLite file; a PostgreSQL URL
@@ -26,7 +26,6 @@ import json
 import math
 import os
 import random
-import signal
 import socket
 import subprocess
 import sys
@@ -36,6 +35,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
+
+from service.runner import stop_workers
 
 __all__ = ["LoadReport", "run_load", "load_spec", "percentile", "main"]
 
@@ -113,19 +114,6 @@ def _start(args: list[str], log: Path, env: dict[str, str], nice: int = 0) -> su
         return subprocess.Popen([sys.executable, "-m", "service.cli", *args], env=env, stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, cwd=log.parent,
                                 preexec_fn=(lambda: os.nice(nice)) if nice else None)
-
-
-def _stop(procs: list[subprocess.Popen], timeout: float = 15.0) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + timeout
-    for p in procs:
-        try:
-            p.wait(max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
 
 
 async def _drive(base: str, jobs: int, reads: int, clients: int, report: LoadReport) -> list[str]:
@@ -253,14 +241,14 @@ def run_load(db_url: str | None = None, *, jobs: int = 1000, reads: int = 10000,
         report.checks["ok"] = counts_ok(report.checks)
         return report
     finally:
-        _stop(procs)
+        stop_workers(procs)
         store.dispose()
         if tmp is not None:
             tmp.cleanup()
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m service.bench_load", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.load", description=__doc__.split("\n\n")[0])
     p.add_argument("--db", default=None, help="job store URL (default: a temporary SQLite file); with a "
                    "PostgreSQL URL, a fresh database is made on that server and dropped afterwards (the "
                    "checks count every row, and earlier runs' specs would be deduplicated)")
@@ -274,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     fresh = None
     if args.db and args.db.startswith("postgresql"):
-        from service.pooler import database_url, fresh_database
+        from bench.pooler import database_url, fresh_database
 
         fresh = fresh_database(args.db, "bench_load")
     try:
@@ -283,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
                           worker_nice=args.worker_nice)
     finally:
         if fresh:
-            from service.pooler import drop_database
+            from bench.pooler import drop_database
 
             drop_database(args.db, fresh)
     s = report.summary()

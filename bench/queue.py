@@ -1,6 +1,6 @@
 """Queue overhead per shard: claim + commit of a realistic payload, on SQLite and PostgreSQL.
 
-    python -m service.bench_queue [--shards 200] [--payload-kib 512] [--pg URL] [--walk-spec SPEC]
+    python -m bench.queue [--shards 200] [--payload-kib 512] [--pg URL] [--walk-spec SPEC]
 
 PostgreSQL is benchmarked when ``--pg`` or ``BSSRDF_TEST_POSTGRES_URL`` gives a URL (a temporary
 schema is created and dropped). ``--walk-spec`` also times ``run_shard`` of shard 0 of that spec,
@@ -80,7 +80,7 @@ def _pg_schema_url(base: str) -> tuple[str, str, object]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m service.bench_queue", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.queue", description=__doc__.split("\n\n")[0])
     p.add_argument("--shards", type=int, default=200)
     p.add_argument("--payload-kib", type=int, default=512, help="shard payload size (default: 512 KiB)")
     p.add_argument("--pg", default=os.environ.get("BSSRDF_TEST_POSTGRES_URL"))

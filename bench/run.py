@@ -1,6 +1,6 @@
 """End-to-end throughput: `bssrdf run` with 1 and 2 workers against `bssrdf simulate`.
 
-    python -m service.bench_run [--photons 16000000] [--shards 8] [--medium M2] [--estimator exits]
+    python -m bench.run [--photons 16000000] [--shards 8] [--medium M2] [--estimator exits]
 
 Each command runs as a fresh process on a fresh data directory, timed from start to exit, so the
 figures include everything a user waits for: interpreter and torch start-up, loading the compiled
@@ -42,7 +42,7 @@ def _timed(cmd: list[str], cwd: Path) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m service.bench_run", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.run", description=__doc__.split("\n\n")[0])
     p.add_argument("--medium", default="M2", choices=sorted(MEDIA))
     p.add_argument("--estimator", default="exits", choices=["exits", "connections"])
     p.add_argument("--photons", type=int, default=16_000_000, help="photons of the job (default 16e6)")

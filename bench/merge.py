@@ -1,4 +1,4 @@
-"""Merge memory against shard count: ``python -m service.bench_merge [--shards 16 64 256] [--json]``.
+"""Merge memory against shard count: ``python -m bench.merge [--shards 16 64 256] [--json]``.
 
 For each shard count N it stages a single-medium job of N done shards in a fresh SQLite store
 and local storage (one real shard's tally, written N times as shards 0..N-1: the merge reads
@@ -111,7 +111,7 @@ def measure(n_shards: int, workdir: Path, **bins) -> dict:
     db_url, storage_uri = f"sqlite:///{workdir / 'jobs.sqlite'}", str(workdir / "data")
     job_id = stage_job(db_url, storage_uri, spec)
     shard_file = next((workdir / "data" / ".jobs" / job_id / "shards").iterdir()).stat().st_size
-    out = subprocess.run([sys.executable, "-m", "service.bench_merge", "--merge", db_url, storage_uri],
+    out = subprocess.run([sys.executable, "-m", "bench.merge", "--merge", db_url, storage_uri],
                          check=True, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     figures = json.loads(out.stdout.strip().splitlines()[-1])
     return {"shards": n_shards, "payload_mib": round(estimate_sizes(spec).shard_payload_bytes / 2**20, 2),
@@ -120,7 +120,7 @@ def measure(n_shards: int, workdir: Path, **bins) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m service.bench_merge", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.merge", description=__doc__.split("\n\n")[0])
     p.add_argument("--shards", type=int, nargs="+", default=[16, 64, 256])
     p.add_argument("--radial", type=int, default=256, help="radial bins (payload scale; default 256: 9.5 MB)")
     p.add_argument("--json", action="store_true")
