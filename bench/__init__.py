@@ -6,6 +6,7 @@ checkout, e.g. ``python -m bench.load``):
 - :mod:`bench.fleet`: up to thousands of simulated workers on the claim path, direct or through
   a pooler (:mod:`bench.pooler` runs pgbouncer with ``deploy/pgbouncer/pgbouncer.ini``);
 - :mod:`bench.merge`: merge memory against shard count;
+- :mod:`bench.submit`: creation and deletion of the largest allowed job beside small submissions;
 - :mod:`bench.run`: one job end to end.
 
 The walk's own benchmarks are product commands in ``workers`` (``bssrdf bench``,

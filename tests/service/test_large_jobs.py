@@ -1,6 +1,6 @@
 """A large job's rows: created by one INSERT ... SELECT in task order, deleted in chunks of short
 transactions, with nothing of the job left and nothing of another job touched. (How long either
-holds the store is measured by ``python -m service.bench_submit``, BENCHMARKS.md.)"""
+holds the store is measured by ``python -m bench.submit``, BENCHMARKS.md.)"""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Job creation and deletion of the largest allowed job against concurrent small submissions.
 
-    python -m service.bench_submit [--db URL] [--tasks 50000] [--repeat 3]
+    python -m bench.submit [--db URL] [--tasks 50000] [--repeat 3]
 
 Starts ``bssrdf serve`` (no workers) on a free loopback port against ``--db`` (default a temporary
 SQLite file; with a PostgreSQL URL a fresh database on that server, dropped afterwards). Then,
@@ -23,7 +23,8 @@ from pathlib import Path
 
 import httpx
 
-from service.bench_load import TOKEN, _env, _free_port, _start, _stop, load_spec, percentile
+from bench.load import TOKEN, _env, _free_port, _start, load_spec, percentile
+from service.runner import stop_workers
 
 __all__ = ["large_spec", "run", "main"]
 
@@ -108,13 +109,13 @@ def run(db_url: str | None, tasks: int, repeat: int) -> dict:
                                "delete_s": round(d_wall, 3), "small_posts_during_delete": _stats(d_lat),
                                "errors": errors + d_errors})
     finally:
-        _stop(procs)
+        stop_workers(procs)
         tmp.cleanup()
     return {"backend": db_url.split(":", 1)[0].split("+")[0], "tasks": tasks, "rounds": rounds}
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m service.bench_submit", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.submit", description=__doc__.split("\n\n")[0])
     p.add_argument("--db", default=None, help="job store URL (default: a temporary SQLite file); with a "
                    "PostgreSQL URL, a fresh database is made on that server and dropped afterwards")
     p.add_argument("--tasks", type=int, default=50_000, help="shard tasks of the large job (default: the "
@@ -123,14 +124,14 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     fresh = None
     if args.db and args.db.startswith("postgresql"):
-        from service.pooler import database_url, fresh_database
+        from bench.pooler import database_url, fresh_database
 
         fresh = fresh_database(args.db, "bench_submit")
     try:
         report = run(database_url(args.db, fresh) if fresh else args.db, args.tasks, args.repeat)
     finally:
         if fresh:
-            from service.pooler import drop_database
+            from bench.pooler import drop_database
 
             drop_database(args.db, fresh)
     print(json.dumps(report, indent=1))
