@@ -50,7 +50,8 @@ def sqlite_url_for(data_dir: str | Path) -> str:
 class Settings(BaseSettings):
     """Configuration of the job store, dataset storage, leases and the HTTP API."""
 
-    model_config = SettingsConfigDict(env_prefix="BSSRDF_", extra="ignore")
+    # hide_input_in_errors: a validation error never shows the value (tokens, database passwords).
+    model_config = SettingsConfigDict(env_prefix="BSSRDF_", extra="ignore", hide_input_in_errors=True)
 
     data_dir: str = Field(DEFAULT_DATA_DIR, description="Local data directory (SQLite store, default storage).")
     database_url: str | None = Field(
@@ -96,18 +97,18 @@ class Settings(BaseSettings):
     @field_validator("api_tokens", mode="before")
     @classmethod
     def _tokens_json_list(cls, value: Any) -> Any:
-        """``BSSRDF_API_TOKENS`` is JSON: ``'["tok1", "tok2"]'``; anything else says how to write it."""
+        """``BSSRDF_API_TOKENS`` is JSON: ``'["tok1", "tok2"]'``; anything else says how to write it,
+        and what was wrong with it without showing any of it (it holds secrets)."""
         if not isinstance(value, str):
             return value
         try:
             tokens = json.loads(value) if value.strip() else []
         except ValueError:
-            tokens = None
-        if not isinstance(tokens, list) or not all(isinstance(t, str) and t for t in tokens):
-            shown = value if len(value) <= 20 else value[:17] + "..."
-            raise ValueError(
-                "BSSRDF_API_TOKENS must be a JSON list of non-empty strings, e.g. "
-                f"BSSRDF_API_TOKENS='[\"{shown}\"]'; received {shown!r}")
+            tokens = ValueError
+        wrong = _tokens_problem(tokens, len(value))
+        if wrong is not None:
+            raise ValueError("BSSRDF_API_TOKENS must be a JSON list of non-empty strings, e.g. "
+                             f"BSSRDF_API_TOKENS='[\"TOKEN1\", \"TOKEN2\"]'; received {wrong} (not shown: it holds secrets)")
         return tokens
 
     @model_validator(mode="after")
@@ -124,6 +125,24 @@ class Settings(BaseSettings):
                 f"received {self.heartbeat_seconds}"
             )
         return self
+
+
+_JSON_KINDS = {dict: "a JSON object", list: "a list", str: "a JSON string", bool: "a JSON boolean", int: "a number",
+               float: "a number", type(None): "null"}
+
+
+def _tokens_problem(tokens: Any, length: int) -> str | None:
+    """What is wrong with parsed BSSRDF_API_TOKENS, in words that show none of it (None: nothing)."""
+    if tokens is ValueError:
+        return f"text that is not JSON ({length} characters)"
+    if not isinstance(tokens, list):
+        return _JSON_KINDS.get(type(tokens), "not a list")
+    for i, t in enumerate(tokens, 1):
+        if not isinstance(t, str):
+            return f"a list whose entry {i} is {_JSON_KINDS.get(type(t), 'not a string')}"
+        if not t:
+            return f"a list whose entry {i} is an empty string"
+    return None
 
 
 @lru_cache

@@ -187,6 +187,30 @@ def test_a_bad_token_setting_is_one_clear_line_not_a_traceback(value, tmp_path):
     assert len(out.stderr.splitlines()) <= 3, out.stderr
 
 
+SECRET = "s3cr3t-Tok3n-0123456789"
+
+
+@pytest.mark.parametrize("value, said", [
+    (SECRET, "text that is not JSON"), (f'["{SECRET}"', "text that is not JSON"), (f'"{SECRET}"', "a JSON string"),
+    (f'{{"{SECRET}": 1}}', "a JSON object"), (f'["{SECRET}", 5]', "entry 2 is a number"),
+    (f'["{SECRET}", ""]', "entry 2 is an empty string"),
+], ids=["bare", "unclosed", "string", "object", "number", "empty"])
+def test_a_bad_token_setting_echoes_no_character_of_the_secret(value, said, tmp_path):
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    env = {"BSSRDF_API_TOKENS": value, "BSSRDF_DATA_DIR": str(tmp_path), "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-m", "service.cli", "serve"], capture_output=True, text=True, env=env,
+                         timeout=60)
+    assert out.returncode == 2 and said in out.stderr, out.stderr
+    pieces = {SECRET[i:i + 4] for i in range(len(SECRET) - 3)}  # no 4 characters of it in a row
+    assert not any(p in out.stderr for p in pieces), out.stderr
+    with pytest.raises(ValidationError) as error:  # the model's own message too (create_app(Settings()))
+        Settings(api_tokens=value)
+    assert not any(p in str(error.value) for p in pieces), str(error.value)
+
+
 def test_serve_help_explains_tokens():
     out = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--help"], capture_output=True, text=True)
     assert "BSSRDF_API_TOKENS" in out.stdout and "Authorization: Bearer TOKEN" in out.stdout
