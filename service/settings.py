@@ -14,6 +14,9 @@ see deploy/README.md, "Limits")::
     BSSRDF_MAX_SHARD_CPU_SECONDS=1200        estimated CPU seconds of one shard (schema.estimate)
     BSSRDF_WORKER_SPEED=1.0                  the fleet's speed relative to BENCHMARKS.md's machine
     BSSRDF_MAX_BODY_BYTES=1048576            request body (413 before it is parsed)
+    BSSRDF_MAX_HEADER_BYTES=16384            request line and headers (431 while they arrive)
+    BSSRDF_MAX_HEADERS=100                   header fields of a request (431)
+    BSSRDF_READ_TIMEOUT_SECONDS=10           for the request's head, then for its body, to arrive (408)
     BSSRDF_MAX_SHARD_BYTES=2000000000        estimated shard tally before compression (schema.sizes)
     BSSRDF_MAX_DATASET_BYTES=100000000000    estimated dataset tables before compression
 
@@ -81,6 +84,13 @@ class Settings(BaseSettings):
         1.0, gt=0, description="Speed of the fleet's cores relative to the BENCHMARKS.md machine the CPU "
         "estimate is calibrated on (2.0: twice as fast).")
     max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body; larger ones get 413.")
+    max_header_bytes: int = Field(
+        16384, ge=1024, description="Largest request line and headers, in bytes; larger ones get 431 "
+        "(bssrdf serve refuses them while they arrive).")
+    max_headers: int = Field(100, ge=10, description="Most header fields of a request; more get 431.")
+    read_timeout_seconds: float = Field(
+        10.0, gt=0, description="Seconds a request's line and headers, then its body, may take to arrive "
+        "(a Content-Length larger than the body sent); later: 408 and the connection closed.")
     max_shard_bytes: int = Field(
         2_000_000_000, ge=1, description="Most estimated bytes of one shard's tally before compression "
         "(schema.sizes); the merge holds one shard and one accumulator of that size.")
