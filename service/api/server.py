@@ -11,10 +11,10 @@ fields (BSSRDF_MAX_HEADERS), before any more of it is read, then closes the conn
 still incomplete ``read_timeout_seconds`` (BSSRDF_READ_TIMEOUT_SECONDS) after its first byte is
 answered 408 and closed; the body's share of that timeout is :class:`service.api.limits.BodyLimit`.
 
-A refusal is a lingering close: the answer is sent and the write side shut, then whatever the
-client still sends is read and dropped for :data:`LINGER_SECONDS` before the connection closes,
-so that a client that writes its whole request before it reads (most do) gets the 431 rather
-than a connection reset.
+A refusal is a lingering close: the answer is sent and the write side shut, then what the client
+still sends is read and dropped, for :data:`LINGER_SECONDS` or :data:`LINGER_BYTES` at most,
+before the connection closes, so that a client that writes its whole request before it reads
+(most do) gets the 431 rather than a connection reset.
 
 The parser holds at most the limit plus one read of the socket (64 KiB) of a head, and the
 check costs a few additions per read. The same limits hold for any other server through
@@ -38,6 +38,8 @@ log = logging.getLogger("uvicorn.error")
 
 LINGER_SECONDS = 2.0
 """How long a refused connection's input is still read (and dropped) before it is closed."""
+LINGER_BYTES = 4 << 20
+"""How much of it at most."""
 
 
 class _Refused(Exception):
@@ -62,6 +64,7 @@ class LimitedHttpTools(HttpToolsProtocol):
         super().__init__(*args, **kwargs)
         self._in_head, self._head_bytes, self._fields = True, 0, 0
         self._refusal: bytes | None = None
+        self._dropped = 0
         self._head_timer: asyncio.TimerHandle | None = None
 
     def _refuse(self, status: int, reason: str, detail: str) -> None:
@@ -91,8 +94,11 @@ class LimitedHttpTools(HttpToolsProtocol):
                      f"{self.read_timeout_seconds:g} s (BSSRDF_READ_TIMEOUT_SECONDS)")
 
     def data_received(self, data: bytes) -> None:
-        if self._refusal is not None:
-            return  # refused: the connection is closing, nothing more is parsed
+        if self._refusal is not None:  # refused: lingering, nothing more is parsed
+            self._dropped += len(data)
+            if self._dropped > LINGER_BYTES and not self.transport.is_closing():
+                self.transport.close()
+            return
         if self._in_head:
             self._head_bytes += len(data)
             if self._head_timer is None:
