@@ -1,20 +1,21 @@
 """Big request headers against a real server, and what they do to a concurrent client.
 
-    python -m service.bench_headers [--requests 500] [--header-bytes 1000000] [--rate 20] [--stock]
+    python -m service.bench_headers [--requests 1000] [--block 100] [--header-bytes 1000000] [--rate 20] [--stock]
 
 Starts ``bssrdf serve`` on a free loopback port (``--stock``: uvicorn's own httptools protocol,
 ``uvicorn --factory service.api:create_app --http httptools``, without the header limits of
 service/api/server.py, for comparison), then:
 
-1. baseline: one client reads ``/healthz`` ``--requests`` times on a keep-alive connection;
-2. under load: the same client again while an attacker (a process of its own) sends requests
-   with one header of ``--header-bytes`` bytes, ``--rate`` per second, one connection each
-   (``--rate 0``: one after the other, as fast as they are answered);
-3. one request with a header of ``--huge-bytes`` (default 60 MB) alone.
+1. the client reads ``/healthz`` ``--requests`` times on a keep-alive connection, in blocks of
+   ``--block`` reads that alternate between baseline (no attacker) and under load (an attacker
+   process sends requests with one header of ``--header-bytes`` bytes, ``--rate`` per second,
+   one connection each; ``--rate 0``: one after the other, as fast as they are answered), so
+   that the machine's own drift (other processes) falls on both alike;
+2. one request with a header of ``--huge-bytes`` (default 60 MB) alone.
 
-Prints latency percentiles of the client's reads in 1 and 2, the attacker's requests and the time
-each took to be answered (status counts), the time to answer the huge header and the server's
-peak resident memory (VmHWM) before and after.
+Prints latency percentiles of the client's reads without and with the attacker, the attacker's
+requests and the time each took to be answered (status counts), the time to answer the huge
+header and the server's peak resident memory (VmHWM) before and after.
 """
 
 from __future__ import annotations
@@ -77,12 +78,15 @@ def _big_request(port: int, size: int, timeout: float = 120) -> tuple[int | None
     return status, elapsed
 
 
-def _attack(port: int, size: int, rate: float, stop, results) -> None:
-    out, start = [], time.perf_counter()
+def _attack(port: int, size: int, rate: float, active, stop, results) -> None:
+    out = []
     while not stop.is_set():
+        if not active.wait(0.05):
+            continue
+        start = time.perf_counter()
         out.append(_big_request(port, size))
         if rate > 0:
-            time.sleep(max(0.0, start + len(out) / rate - time.perf_counter()))
+            time.sleep(max(0.0, start + 1 / rate - time.perf_counter()))
     results.put(out)
 
 
@@ -105,7 +109,8 @@ def _show(name: str, values: list[float]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m service.bench_headers", description=__doc__.split("\n\n")[0])
-    p.add_argument("--requests", type=int, default=500, help="client reads per phase")
+    p.add_argument("--requests", type=int, default=1000, help="client reads without, and again with, the attacker")
+    p.add_argument("--block", type=int, default=100, help="reads per block (blocks alternate)")
     p.add_argument("--header-bytes", type=int, default=1_000_000, help="the attacker's header size")
     p.add_argument("--rate", type=float, default=20.0, help="the attacker's requests per second (0: no pause)")
     p.add_argument("--huge-bytes", type=int, default=60_000_000, help="the single huge header (0: skip)")
@@ -136,18 +141,21 @@ def main(argv: list[str] | None = None) -> int:
         print(f"server: {'uvicorn httptools (stock)' if args.stock else 'bssrdf serve'}, pid {server.pid}, "
               f"peak RSS {_peak_rss_mib(server.pid):.0f} MiB")
         _reads(port, 50)  # warm up
-        print(_show("baseline /healthz", _reads(port, args.requests)))
-
         # The attacker is a process of its own: in a thread it would share the client's GIL and
         # slow the measuring client itself.
-        stop, results = multiprocessing.Event(), multiprocessing.Queue()
-        attacker = multiprocessing.Process(target=_attack, args=(port, args.header_bytes, args.rate, stop, results), daemon=True)
+        active, stop, results = multiprocessing.Event(), multiprocessing.Event(), multiprocessing.Queue()
+        attacker = multiprocessing.Process(target=_attack, daemon=True,
+                                           args=(port, args.header_bytes, args.rate, active, stop, results))
         attacker.start()
-        time.sleep(0.5)
-        loaded = _reads(port, args.requests)
+        baseline, loaded = [], []
+        for block in range(max(2, args.requests // args.block * 2)):
+            (active.set if block % 2 else active.clear)()
+            time.sleep(0.1)
+            (loaded if block % 2 else baseline).extend(_reads(port, args.block))
         stop.set()
         attacks = results.get(timeout=120)
         attacker.join(120)
+        print(_show("baseline /healthz", baseline))
         print(_show(f"/healthz with {args.header_bytes:,} B headers", loaded) +
               f"  (attacker: {'no pause' if args.rate <= 0 else f'{args.rate:g}/s'})")
         statuses: dict[object, int] = {}
