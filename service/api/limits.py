@@ -111,14 +111,14 @@ class BodyLimit:
                 if message["type"] != "http.request":
                     break
                 seen += len(message.get("body", b""))
-                if seen > self.max_bytes:
-                    return await self._send_413(send, f"more than {self.max_bytes}")
-                if not message.get("more_body", False):
+                if seen > self.max_bytes or not message.get("more_body", False):
                     break
         if reading.cancelled_caught:
             told = f" of the {length.decode('latin-1')} bytes its Content-Length announced" if length else ""
             return await _send_json(send, 408, f"the request body did not arrive within {self.timeout_s:g} s "
                                                f"(BSSRDF_READ_TIMEOUT_SECONDS): {seen} bytes{told}")
+        if seen > self.max_bytes:
+            return await self._send_413(send, f"more than {self.max_bytes}")
         replay = iter(messages)
 
         async def replayed_receive():
