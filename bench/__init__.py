@@ -7,7 +7,8 @@ checkout, e.g. ``python -m bench.load``):
   a pooler (:mod:`bench.pooler` runs pgbouncer with ``deploy/pgbouncer/pgbouncer.ini``);
 - :mod:`bench.merge`: merge memory against shard count;
 - :mod:`bench.submit`: creation and deletion of the largest allowed job beside small submissions;
-- :mod:`bench.run`: one job end to end.
+- :mod:`bench.run`: one job end to end;
+- :mod:`bench.headers`: a client's latency while big request headers arrive.
 
 The walk's own benchmarks are product commands in ``workers`` (``bssrdf bench``,
 ``python -m workers.efficiency``, ``python -m workers.table_cost``). Figures: BENCHMARKS.md.

@@ -1,4 +1,4 @@
-"""``bssrdf serve``: run the HTTP API with uvicorn.
+"""``bssrdf serve``: run the HTTP API with uvicorn (its httptools protocol with header limits).
 
     bssrdf serve [--host 127.0.0.1] [--port 8000] [--db URL] [--storage URI]
 
@@ -25,6 +25,9 @@ authentication:
                       serve refuses any address but loopback. Clients: --token or BSSRDF_TOKEN.
 limits (refused with 4xx naming the field, the limit and the value):
   BSSRDF_MAX_JOB_PHOTONS, BSSRDF_MAX_SHARD_CPU_SECONDS, BSSRDF_WORKER_SPEED, BSSRDF_MAX_BODY_BYTES
+HTTP (uvicorn with httptools, service/api/server.py):
+  BSSRDF_MAX_HEADER_BYTES (16384) and BSSRDF_MAX_HEADERS (100): a bigger head is refused with 431
+  while it arrives; BSSRDF_READ_TIMEOUT_SECONDS (10): a head, then a body, arriving slower is 408
 """
 
 
@@ -61,6 +64,7 @@ def main(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from service.api import InsecureBindError, create_app
+    from service.api.server import limited_protocol
 
     try:
         settings = build_settings(args)
@@ -68,7 +72,8 @@ def main(args: argparse.Namespace) -> int:
     except (InsecureBindError, ValidationError) as exc:
         print(f"bssrdf serve: {exc}", file=sys.stderr)
         return 2
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level)
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level,
+                http=limited_protocol(settings))
     return 0
 
 

@@ -14,6 +14,9 @@ see deploy/README.md, "Limits")::
     BSSRDF_MAX_SHARD_CPU_SECONDS=1200        estimated CPU seconds of one shard (schema.estimate)
     BSSRDF_WORKER_SPEED=1.0                  the fleet's speed relative to BENCHMARKS.md's machine
     BSSRDF_MAX_BODY_BYTES=1048576            request body (413 before it is parsed)
+    BSSRDF_MAX_HEADER_BYTES=16384            request line and headers (431 while they arrive)
+    BSSRDF_MAX_HEADERS=100                   header fields of a request (431)
+    BSSRDF_READ_TIMEOUT_SECONDS=10           for the request's head, then for its body, to arrive (408)
     BSSRDF_MAX_SHARD_BYTES=2000000000        estimated shard tally before compression (schema.sizes)
     BSSRDF_MAX_DATASET_BYTES=100000000000    estimated dataset tables before compression
     BSSRDF_MAX_JOB_TASKS=50000               shard tasks of one job (walk groups x shards)
@@ -53,7 +56,8 @@ def sqlite_url_for(data_dir: str | Path) -> str:
 class Settings(BaseSettings):
     """Configuration of the job store, dataset storage, leases and the HTTP API."""
 
-    model_config = SettingsConfigDict(env_prefix="BSSRDF_", extra="ignore")
+    # hide_input_in_errors: a validation error never shows the value (tokens, database passwords).
+    model_config = SettingsConfigDict(env_prefix="BSSRDF_", extra="ignore", hide_input_in_errors=True)
 
     data_dir: str = Field(DEFAULT_DATA_DIR, description="Local data directory (SQLite store, default storage).")
     database_url: str | None = Field(
@@ -83,6 +87,13 @@ class Settings(BaseSettings):
         1.0, gt=0, description="Speed of the fleet's cores relative to the BENCHMARKS.md machine the CPU "
         "estimate is calibrated on (2.0: twice as fast).")
     max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body; larger ones get 413.")
+    max_header_bytes: int = Field(
+        16384, ge=1024, description="Largest request line and headers, in bytes; larger ones get 431 "
+        "(bssrdf serve refuses them while they arrive).")
+    max_headers: int = Field(100, ge=10, description="Most header fields of a request; more get 431.")
+    read_timeout_seconds: float = Field(
+        10.0, gt=0, description="Seconds a request's line and headers, then its body, may take to arrive "
+        "(a Content-Length larger than the body sent); later: 408 and the connection closed.")
     max_shard_bytes: int = Field(
         2_000_000_000, ge=1, description="Most estimated bytes of one shard's tally before compression "
         "(schema.sizes); the merge holds one shard and one accumulator of that size.")
@@ -102,18 +113,18 @@ class Settings(BaseSettings):
     @field_validator("api_tokens", mode="before")
     @classmethod
     def _tokens_json_list(cls, value: Any) -> Any:
-        """``BSSRDF_API_TOKENS`` is JSON: ``'["tok1", "tok2"]'``; anything else says how to write it."""
+        """``BSSRDF_API_TOKENS`` is JSON: ``'["tok1", "tok2"]'``; anything else says how to write it,
+        and what was wrong with it without showing any of it (it holds secrets)."""
         if not isinstance(value, str):
             return value
         try:
             tokens = json.loads(value) if value.strip() else []
         except ValueError:
-            tokens = None
-        if not isinstance(tokens, list) or not all(isinstance(t, str) and t for t in tokens):
-            shown = value if len(value) <= 20 else value[:17] + "..."
-            raise ValueError(
-                "BSSRDF_API_TOKENS must be a JSON list of non-empty strings, e.g. "
-                f"BSSRDF_API_TOKENS='[\"{shown}\"]'; received {shown!r}")
+            tokens = ValueError
+        wrong = _tokens_problem(tokens, len(value))
+        if wrong is not None:
+            raise ValueError("BSSRDF_API_TOKENS must be a JSON list of non-empty strings, e.g. "
+                             f"BSSRDF_API_TOKENS='[\"TOKEN1\", \"TOKEN2\"]'; received {wrong} (not shown: it holds secrets)")
         return tokens
 
     @model_validator(mode="after")
@@ -130,6 +141,24 @@ class Settings(BaseSettings):
                 f"received {self.heartbeat_seconds}"
             )
         return self
+
+
+_JSON_KINDS = {dict: "a JSON object", list: "a list", str: "a JSON string", bool: "a JSON boolean", int: "a number",
+               float: "a number", type(None): "null"}
+
+
+def _tokens_problem(tokens: Any, length: int) -> str | None:
+    """What is wrong with parsed BSSRDF_API_TOKENS, in words that show none of it (None: nothing)."""
+    if tokens is ValueError:
+        return f"text that is not JSON ({length} characters)"
+    if not isinstance(tokens, list):
+        return _JSON_KINDS.get(type(tokens), "not a list")
+    for i, t in enumerate(tokens, 1):
+        if not isinstance(t, str):
+            return f"a list whose entry {i} is {_JSON_KINDS.get(type(t), 'not a string')}"
+        if not t:
+            return f"a list whose entry {i} is an empty string"
+    return None
 
 
 @lru_cache

@@ -6,7 +6,9 @@
 
 Routers: ``/v1/jobs``, ``/v1/datasets``, ``/v1/version``, and the unversioned ``/healthz``,
 ``/readyz``, ``/metrics``. Request bodies over ``BSSRDF_MAX_BODY_BYTES`` are refused (413) before
-they are read whole (:class:`service.api.limits.BodyLimit`). The interactive OpenAPI documentation is at ``/docs``;
+they are read whole (:class:`service.api.limits.BodyLimit`), heads over ``BSSRDF_MAX_HEADER_BYTES``
+or ``BSSRDF_MAX_HEADERS`` with 431 (:class:`~service.api.limits.HeaderLimit`; ``bssrdf serve``
+refuses them while they arrive, :mod:`service.api.server`). The interactive OpenAPI documentation is at ``/docs``;
 the document (``/openapi.json``) is corrected to the API's behaviour by :mod:`service.api.openapi`.
 """
 
@@ -19,7 +21,7 @@ from fastapi import FastAPI
 
 from service.api.deps import Resources
 from service.api.errors import install_error_handlers
-from service.api.limits import BodyLimit
+from service.api.limits import BodyLimit, HeaderLimit
 from service.api.models import API_VERSION
 from service.api.openapi import install_openapi
 from service.api.routers import datasets, health, jobs
@@ -84,7 +86,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.resources = resources
     app.state.settings = effective
     install_error_handlers(app)
-    app.add_middleware(BodyLimit, max_bytes=effective.max_body_bytes)
+    app.add_middleware(BodyLimit, max_bytes=effective.max_body_bytes, timeout_s=effective.read_timeout_seconds)
+    app.add_middleware(HeaderLimit, max_bytes=effective.max_header_bytes, max_count=effective.max_headers)
     for router in ROUTERS:
         app.include_router(router)
     # The API's routes, for the 405 answer's Allow header and the OpenAPI fixes.

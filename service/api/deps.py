@@ -1,7 +1,8 @@
 """Dependencies of the routes, as ``Annotated`` aliases.
 
     SettingsDep   the app's settings, ``app.state.settings`` (tests may override :func:`app_settings`)
-    StoreDep      the app's JobStore (one per process, created on first use)
+    StoreDep      the app's JobStore (one per process, created on first use); one that cannot
+                  be opened is a :class:`StoreUnavailable`, whose first call is the 503
     StorageDep    the app's DatasetStorage
     AuthDep       a bearer token from ``settings.api_tokens``: mutating endpoints
     ReadAuthDep   the same unless ``settings.read_open``: read endpoints
@@ -11,6 +12,8 @@ The dependencies that only read memory are ``async def``: FastAPI runs a plain `
 in its thread pool, a thread hop each (six per status read before, a quarter of its CPU time);
 those that query the database (:func:`job_or_404`) stay plain functions, off the event loop. The
 first request of a process opens the store (and migrates it) in :func:`get_store`, on the loop.
+A store that cannot be opened is not a 503 there: the dependency runs before the body, path and
+query are validated, and bad input must get its 4xx (not an outage) whatever the store does.
 
 Routes declare the auth dependency as their first parameter: dependencies are resolved in order,
 so a caller without a valid token gets 401 before anything is looked up (no 404 or 422 leaks).
@@ -39,7 +42,7 @@ from service.store import JobNotFound, JobRecord, JobStore
 __all__ = [
     "SettingsDep", "StoreDep", "StorageDep", "AuthDep", "ReadAuthDep", "JobDep", "JobIdPath", "JOB_ID_PATTERN",
     "app_settings", "get_store", "token_fingerprint", "get_storage", "require_token", "require_read_token", "job_or_404",
-    "lookup_job",
+    "lookup_job", "StoreUnavailable",
     "Resources", "API_POOL_SIZE",
 ]
 
@@ -103,9 +106,26 @@ class Resources:
             self._store = self._storage = None
 
 
+class StoreUnavailable:
+    """Stands in for a job store that could not be opened: calling any of its methods raises the
+    503 (naming BSSRDF_DATABASE_URL). Routes call the store only once their input is valid."""
+
+    def __init__(self, error: HTTPException) -> None:
+        self._error = error
+
+    def __getattr__(self, name: str):
+        def unavailable(*_args, **_kwargs):
+            raise HTTPException(self._error.status_code, self._error.detail, headers=self._error.headers)
+
+        return unavailable
+
+
 async def get_store(request: Request, settings: SettingsDep) -> JobStore:
-    """The job store of ``settings.database_url``."""
-    return request.app.state.resources.store(settings)
+    """The job store of ``settings.database_url`` (a :class:`StoreUnavailable` if it cannot be opened)."""
+    try:
+        return request.app.state.resources.store(settings)
+    except HTTPException as exc:
+        return StoreUnavailable(exc)  # type: ignore[return-value]
 
 
 async def get_storage(request: Request, settings: SettingsDep) -> DatasetStorage:

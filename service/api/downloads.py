@@ -14,7 +14,9 @@ exports, take the same path.)
   500 naming the file; a corrupt copy is never served);
 - ``Range: bytes=a-b`` / ``a-`` / ``-n`` (one range) -> 206 with ``Content-Range``; a range
   past the end -> 416 with ``Content-Range: bytes */size``; several ranges or a malformed header
-  are ignored (200 with the whole file, as RFC 9110 allows);
+  are ignored (200 with the whole file, as RFC 9110 allows), and so is a Range sent with an
+  ``If-Range`` that is not the ETag (strong comparison; the files have no Last-Modified, so a
+  date never matches): the client's partial copy is of other bytes, it gets the whole file;
 - ``Content-Length``, ``Accept-Ranges: bytes`` and ``Content-Disposition`` on every answer;
   HEAD sends the same headers as GET and no body.
 """
@@ -30,7 +32,7 @@ from fastapi.responses import Response, StreamingResponse
 from service.datasets import DatasetStorage, verified_path
 from service.store import DatasetVersionRecord
 
-__all__ = ["file_response", "parse_range", "etag_matches", "MEDIA_TYPES", "DOWNLOAD_RESPONSES"]
+__all__ = ["file_response", "parse_range", "etag_matches", "if_range_allows", "MEDIA_TYPES", "DOWNLOAD_RESPONSES"]
 
 _CHUNK = 1 << 20
 MEDIA_TYPES = {".parquet": "application/vnd.apache.parquet", ".json": "application/json", ".zip": "application/zip"}
@@ -66,6 +68,12 @@ def etag_matches(header: str | None, etag: str) -> bool:
     return "*" in tags or any(t.removeprefix("W/") == etag for t in tags)
 
 
+def if_range_allows(header: str | None, etag: str) -> bool:
+    """Whether a Range may be served: no ``If-Range``, or one naming exactly ``etag`` (RFC 9110
+    13.1.5: strong comparison, so a weak tag or a date never matches)."""
+    return header is None or header.strip() == etag
+
+
 def _stream(storage: DatasetStorage, path: str, start: int, stop: int) -> Iterator[bytes]:
     with storage.fs.open_input_file(path) as f:
         f.seek(start)
@@ -91,7 +99,8 @@ def file_response(request: Request, storage: DatasetStorage, record: DatasetVers
     path = verified_path(storage, record, filename, sha256)  # ChecksumMismatch -> 500
     size = storage.fs.get_file_info(path).size
     media_type = MEDIA_TYPES.get(suffix, "application/octet-stream")
-    wanted = parse_range(request.headers.get("range"), size)
+    ranged = if_range_allows(request.headers.get("if-range"), etag)
+    wanted = parse_range(request.headers.get("range"), size) if ranged else None
     if wanted == "unsatisfiable":
         return Response(status_code=416, headers={**headers, "Content-Range": f"bytes */{size}"})
     start, stop = wanted if wanted is not None else (0, size)

@@ -9,10 +9,9 @@ Every error is JSON ``{"detail": ...}``:
 
 Exceptions mapped here (store errors not caught by a route):
 
-    RequestValidationError        -> 422 (problems; a body that is not JSON is field ``body``)
+    RequestValidationError        -> 422 (problems; a body that is not JSON in UTF-8, a
+                                     :class:`~service.api.bodies.BadBody`, is field ``body``)
     HTTPException 405             -> 405 whose ``Allow`` lists the methods of every route of the path
-    HTTPException 400 from a body
-    that is not text (not UTF-8)  -> 422 on the field ``body``, like any other body that is not JSON
     JobNotFound, VersionNotFound  -> 404
     VersionDeleted                -> 410 (the tombstone: who deleted it, the spec hash)
     JobNotActive, JobPublished    -> 409
@@ -21,8 +20,9 @@ Exceptions mapped here (store errors not caught by a route):
     sqlalchemy OperationalError,
     InterfaceError                -> 503 (job store unreachable; other database errors are bugs: 500)
 
-Values received are echoed shortened (:func:`shorten`: strings to 80 characters, lists and
-objects to their first entries, nesting to 4 levels), so a huge request never gets a huge answer.
+Values received are echoed shortened (:func:`shorten`: strings to 80 characters, integers past
+10**30 to 4 significant digits, lists and objects to their first entries, nesting to 4 levels), so
+a huge request never gets a huge answer.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from sqlalchemy.exc import InterfaceError, OperationalError
 
+from service.api.bodies import BadBody, LongInt
 from service.api.models import ErrorMessage, ValidationErrorBody
 from service.store import (
     ChecksumMismatch, IdempotencyConflict, JobNotActive, JobNotFound, JobPublished, VersionDeleted, VersionNotFound,
@@ -100,12 +101,28 @@ def _text(value: str) -> str:
     return value if len(value) <= _TEXT_MAX else value[:_TEXT_MAX - 3] + "..."
 
 
+def _big_int(value: int) -> str:
+    """``-123456...`` of n digits -> ``"-1.235e+{n-1}"``, without converting it to a float (which
+    overflows past 1.8e308) or to text whole (Python refuses past 4300 digits)."""
+    sign = "-" if value < 0 else ""
+    if isinstance(value, LongInt):
+        return f"{sign}{value.head.lstrip('-')[0]}.{value.head.lstrip('-')[1:5]}...e+{value.digits - 1}"
+    value = abs(value)
+    if value.bit_length() > 14_000:  # about 4200 digits: text from arithmetic, never from JSON
+        return f"{sign}an integer of about {int(value.bit_length() * math.log10(2)) + 1} digits"
+    digits = str(value)
+    mantissa = (int(digits[:5]) + 5) // 10  # 4 significant digits, rounded
+    exponent = len(digits) - 1 + (mantissa >= 10_000)
+    mantissa = f"{mantissa // 10 if mantissa >= 10_000 else mantissa}"
+    return f"{sign}{mantissa[0]}.{mantissa[1:]}e+{exponent}"
+
+
 def shorten(value: Any, depth: int = 0) -> Any:
     """A JSON-safe, bounded copy of a received value for an error body."""
     if isinstance(value, float) and not math.isfinite(value):
         return repr(value)  # JSON has no nan/inf
     if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**30:
-        return _text(f"{value:.3e}")
+        return _big_int(value)
     if value is None or isinstance(value, (bool, int, float)):
         return value
     if isinstance(value, str):
@@ -139,6 +156,9 @@ def problems_from_errors(errors: list[dict[str, Any]]) -> list[dict[str, Any]]:
         rest = 0
     for e in errors:
         loc = tuple(e["loc"])
+        if isinstance(e.get("input"), BadBody):  # service.api.bodies: refused after the token
+            out.append(problem("body", e["input"].message(), "a JSON object (UTF-8)", None))
+            continue
         if e["type"] == "json_invalid":
             out.append(problem("body", _message(e), "a JSON object", None))
             continue
@@ -169,12 +189,6 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
-        if exc.status_code == 400 and isinstance(exc.__cause__, UnicodeDecodeError):
-            # FastAPI's answer to a body json.loads cannot decode: "There was an error parsing the body".
-            bad = exc.__cause__
-            return JSONResponse({"detail": [problem(
-                "body", f"the request body is not valid JSON: it is not UTF-8 text (byte {bad.object[bad.start]:#04x} "
-                f"at position {bad.start})", "a JSON object (UTF-8)", None)]}, status_code=422)
         if exc.status_code != 405:
             return await http_exception_handler(request, exc)
         allow = allowed_methods(request)

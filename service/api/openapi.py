@@ -8,7 +8,8 @@ document is built:
 - every 422 is our problem list (:class:`~service.api.models.ValidationErrorBody`, see
   :mod:`service.api.errors`), never FastAPI's ``HTTPValidationError`` (``loc``/``msg``/``type``);
 - a route answering GET and HEAD is two operations and needs two operation ids;
-- an operation with a request body documents 413 (:class:`~service.api.limits.BodyLimit`);
+- an operation with a request body documents 413 and 408 (:class:`~service.api.limits.BodyLimit`),
+  and every operation 431 (:class:`~service.api.limits.HeaderLimit`, :mod:`service.api.server`);
 - errors are JSON on every route, also where the success is text (``/metrics``).
 """
 
@@ -29,6 +30,10 @@ _OURS = "#/components/schemas/ValidationErrorBody"
 _THEIRS = "#/components/schemas/HTTPValidationError"
 _TOO_LARGE = {"description": "The request body is over BSSRDF_MAX_BODY_BYTES (refused before it is read).",
               "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorMessage"}}}}
+_TOO_SLOW = {"description": "The request body did not arrive within BSSRDF_READ_TIMEOUT_SECONDS (a Content-Length "
+             "larger than the body sent); the connection is closed.", "content": _TOO_LARGE["content"]}
+_HEAD_TOO_LARGE = {"description": "The request line and headers are over BSSRDF_MAX_HEADER_BYTES, or the header "
+                   "fields more than BSSRDF_MAX_HEADERS (refused while they arrive).", "content": _TOO_LARGE["content"]}
 
 
 def _depends_on(dependant, call) -> bool:
@@ -64,6 +69,8 @@ def _fix(doc: dict[str, Any], reads: set[tuple[str, str]], read_open: bool) -> d
                 op["operationId"] = op["operationId"].rsplit("_", 1)[0] + "_" + method
             if "requestBody" in op:
                 op["responses"].setdefault("413", _TOO_LARGE)
+                op["responses"].setdefault("408", _TOO_SLOW)
+            op["responses"].setdefault("431", _HEAD_TOO_LARGE)
             for status, response in op["responses"].items():
                 content = response.get("content") or {}
                 if status >= "400" and content and "application/json" not in content:

@@ -16,7 +16,7 @@ from service.store.base import StoreBase
 from service.store.errors import IdempotencyConflict, JobNotActive, JobNotFound
 from service.store.records import JobProgress, JobRecord, Submission
 from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
-from service.store.tables import dataset_versions, jobs, tasks
+from service.store.tables import dataset_versions, idempotency_keys, jobs, tasks
 
 __all__ = ["JobsMixin", "SpecLike"]
 
@@ -67,14 +67,16 @@ class JobsMixin(StoreBase):
         version or a live job returns that job instead of a new one (``Submission.existing``
         says which), unless ``force``. The check and the insert are one transaction, serialised
         per spec hash (PostgreSQL advisory lock; SQLite's single writer), so two identical
-        submissions at once make one job.
+        submissions at once make one job. The idempotency key is stored with the job it is
+        answered with, a new one or the duplicate found (table ``idempotency_keys``), in the same
+        transaction: the key names that job from then on.
         """
         if spec.shards < 1:
             raise ValueError(f"spec.shards must be >= 1; received {spec.shards}")
         if idempotency_key is not None:
             existing = self._job_by_key(idempotency_key)
             if existing is not None:
-                return Submission(self._check_same_spec(existing, spec), "idempotency_key")
+                return Submission(self._check_same_spec(existing, spec, idempotency_key), "idempotency_key")
         job_id = str(uuid.uuid4())
         spec_json, spec_hash = spec.canonical_json(), spec.spec_hash()
         now = self._now()
@@ -87,12 +89,15 @@ class JobsMixin(StoreBase):
                         job_id = None
                 if job_id is not None:
                     self._insert_job(conn, job_id, spec, spec_json, spec_hash, idempotency_key, now)
+                if idempotency_key is not None:
+                    conn.execute(sa.insert(idempotency_keys).values(key=idempotency_key, job_id=job_id or found_id,
+                                                                    created_at=now))
         except IntegrityError:
             # A concurrent submit stored the same idempotency key first.
             existing = self._job_by_key(idempotency_key) if idempotency_key else None
             if existing is None:
                 raise
-            return Submission(self._check_same_spec(existing, spec), "idempotency_key")
+            return Submission(self._check_same_spec(existing, spec, idempotency_key), "idempotency_key")
         if job_id is None:
             return Submission(self.get_job(found_id), why)
         return Submission(self.get_job(job_id))
@@ -149,14 +154,15 @@ class JobsMixin(StoreBase):
 
     def _job_by_key(self, key: str) -> JobRecord | None:
         with self._read() as conn:
-            row = conn.execute(sa.select(jobs).where(jobs.c.idempotency_key == key)).first()
+            row = conn.execute(sa.select(jobs).join(idempotency_keys, idempotency_keys.c.job_id == jobs.c.id)
+                               .where(idempotency_keys.c.key == key)).first()
         return None if row is None else JobRecord.from_row(row)
 
     @staticmethod
-    def _check_same_spec(job: JobRecord, spec: SpecLike) -> JobRecord:
+    def _check_same_spec(job: JobRecord, spec: SpecLike, key: str) -> JobRecord:
         if job.spec_hash != spec.spec_hash():
             raise IdempotencyConflict(
-                f"idempotency key {job.idempotency_key!r} already names job {job.id} with spec hash "
+                f"idempotency key {key!r} already names job {job.id} with spec hash "
                 f"{job.spec_hash}; this spec hashes to {spec.spec_hash()}: use a new key"
             )
         return job

@@ -1,5 +1,5 @@
 """SQLAlchemy Core tables of the job store (the schema created by migrations 0001, 0002, 0003_lifecycle,
-0004_shard_files, 0005_task_phase).
+0004_shard_files, 0005_task_phase, 0006_idempotency_keys).
 
 Times are seconds since the Unix epoch (float64) read from the *database* clock
 (:func:`service.store.engine.db_now`), so leases are judged by one clock for every worker host.
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sqlalchemy as sa
 
-__all__ = ["metadata", "jobs", "tasks", "shard_results", "dataset_versions", "dataset_exports"]
+__all__ = ["metadata", "jobs", "tasks", "shard_results", "dataset_versions", "dataset_exports", "idempotency_keys"]
 
 metadata = sa.MetaData()
 
@@ -39,6 +39,17 @@ jobs = sa.Table(
     sa.Column("fold_bytes", sa.BigInteger),
     sa.Column("fold_sha256", sa.String(64)),
     sa.Index("ix_jobs_spec_hash", "spec_hash"),
+)
+
+idempotency_keys = sa.Table(
+    "idempotency_keys",
+    metadata,
+    # Every idempotency key and the job it was answered with: the job it created (also in
+    # jobs.idempotency_key) or the existing job the duplicate check returned (migration 0006).
+    sa.Column("key", sa.String(200), primary_key=True),
+    sa.Column("job_id", sa.String(36), sa.ForeignKey("jobs.id", ondelete="CASCADE"), nullable=False),
+    sa.Column("created_at", sa.Float, nullable=False),
+    sa.Index("ix_idempotency_keys_job_id", "job_id"),
 )
 
 tasks = sa.Table(

@@ -195,3 +195,18 @@ def test_a_corrupted_file_is_not_served_to_head_or_range_either(ds_client, publi
     finally:
         with storage.fs.open_output_stream(path) as f:
             f.write(data)
+
+
+@pytest.mark.parametrize("if_range, status", [
+    ("ETAG", 206), ('"0000"', 200), ("W/ETAG", 200), ("Wed, 21 Oct 2015 07:28:00 GMT", 200), ("", 200),
+], ids=["same-etag", "other-etag", "weak-etag", "a-date", "empty"])
+def test_if_range_sends_the_range_only_for_the_same_strong_etag(ds_client, published, if_range, status):
+    """RFC 9110 13.1.5: a validator that does not match (strong comparison; the files have no
+    Last-Modified, so no date matches) means the whole file, 200, not the range."""
+    data, digest = _published_bytes(published, "radial.parquet")
+    header = if_range.replace("ETAG", f'"{digest}"')
+    r = ds_client.get("/v1/datasets/tiny/versions/1/files/radial.parquet",
+                      headers={"Range": "bytes=0-9", "If-Range": header})
+    assert r.status_code == status, r.headers
+    assert r.content == (data[:10] if status == 206 else data)
+    assert ("content-range" in r.headers) == (status == 206)

@@ -18,8 +18,15 @@ has cross-field rules JSON Schema cannot state (``shards <= photons``, one of ``
 ``sweep``, total bins, cost limits): those refusals are 422s naming the field, which the second
 property checks.
 
+Two more fuzzers, plain hypothesis on the same app and store: integer literals of up to 30,000
+digits in place of any value of a submission or under a new key (JSON bounds no number; Python
+converts at most 4300 digits), and requests with up to 130 generated header fields of up to 40 KB
+each (past the head limits: 431). Same properties: no 5xx, a reason, nothing stored. The server's
+own parser gets arbitrary heads in tests/api/test_http_limits.py.
+
 Budget: EXAMPLES generated requests per operation, generation mode and token setting, about 45 s
-here with the published fixture; ``BSSRDF_FUZZ_SCALE`` multiplies it (tests/support/fuzzing.py).
+here with the published fixture, and INT_EXAMPLES / HEADER_EXAMPLES (a few seconds each);
+``BSSRDF_FUZZ_SCALE`` multiplies them (tests/support/fuzzing.py).
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ import sqlite3
 
 import pytest
 import schemathesis
-from hypothesis import HealthCheck, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from schemathesis import GenerationMode
 from schemathesis.core.parameters import ParameterLocation
@@ -37,7 +44,7 @@ from schemathesis.core.parameters import ParameterLocation
 from service.api import create_app
 from service.api.deps import get_storage, get_store
 from service.settings import Settings
-from tests.api.conftest import TOKEN
+from tests.api.conftest import TINY_SPEC, TOKEN
 from tests.support.fuzzing import examples
 
 pytestmark = pytest.mark.slow
@@ -169,3 +176,110 @@ def test_fuzz_api_without_a_token(case, fuzz_target):
     if case.headers:
         case.headers.pop("Authorization", None)
     fuzz_one(case, fuzz_target, {})
+
+
+# -- integers of any length anywhere in a body, and arbitrary headers (hypothesis, not the schema) ---------
+
+INT_EXAMPLES = examples(60)
+"""Bodies with long integer literals per run (a few seconds)."""
+HEADER_EXAMPLES = examples(80)
+"""Requests with generated headers per run (a few seconds)."""
+
+
+@pytest.fixture(scope="module")
+def fuzz_client(fuzz_target, tmp_path_factory):
+    """A TestClient of the fuzz target app (reads open, tokens [TOKEN])."""
+    from fastapi.testclient import TestClient
+
+    store, storage, _jobs, _watch = fuzz_target
+    app = create_app(Settings(data_dir=str(tmp_path_factory.mktemp("unused")), api_tokens=[TOKEN]))
+    app.dependency_overrides[get_store] = lambda: store
+    app.dependency_overrides[get_storage] = lambda: storage
+    with TestClient(app) as client:
+        yield client
+
+
+def _paths(value, prefix=()) -> list[tuple]:
+    """Every key path of a JSON value (its objects' keys and list indices), the root's included."""
+    out = [prefix]
+    if isinstance(value, dict):
+        for k, v in value.items():
+            out += _paths(v, prefix + (k,))
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            out += _paths(v, prefix + (i,))
+    return out
+
+
+def _place(body, path: tuple, value) -> None:
+    """Set the value at ``path`` (a new key where there is none); skipped when an earlier placement
+    replaced a container on the way."""
+    parent = body
+    for k in path[:-1]:
+        if not isinstance(parent, (dict, list)):
+            return
+        parent = parent[k]
+    if isinstance(parent, (dict, list)):
+        parent[path[-1]] = value
+
+
+BODY = {"spec": {**TINY_SPEC, "incidence_deg": [0.0, 30.0]}, "idempotency_key": "fuzz-int", "force": False}
+TARGETS = [p for p in _paths(BODY) if p] + [("unknown",), ("spec", "unknown"), ("spec", "medium", "unknown")]
+
+
+@given(st.lists(st.tuples(st.sampled_from(TARGETS), st.integers(1, 30_000), st.booleans(), st.integers(1, 9)),
+                min_size=1, max_size=3))
+@settings(max_examples=INT_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+def test_fuzz_integers_of_any_length_anywhere(fuzz_client, fuzz_target, placements):
+    """Long integer literals (up to 30,000 digits: JSON has no bound, Python converts 4300 at most)
+    in place of any value of a submission, or under a new key: never a 5xx; a refusal names a
+    field and stores nothing."""
+    import copy
+    import json
+
+    body, literals = copy.deepcopy(BODY), {}
+    for i, (path, digits, negative, lead) in enumerate(placements):
+        marker = f"INT{i}MARK"
+        literals[json.dumps(marker)] = "-" * negative + str(lead) + ("0123456789" * (digits // 10 + 1))[:digits - 1]
+        _place(body, path, marker)
+    text = json.dumps(body)
+    for marker, literal in literals.items():
+        text = text.replace(marker, literal)
+    _store, _storage, _jobs, watch = fuzz_target
+    before = watch.look()
+    r = fuzz_client.post("/v1/jobs", content=text.encode(), headers={"Authorization": f"Bearer {TOKEN}",
+                                                                     "content-type": "application/json"})
+    assert r.status_code < 500, r.text
+    assert len(r.content) < 20_000, len(r.content)
+    if 400 <= r.status_code < 500:
+        assert_reason(r)
+        assert watch.look() == before
+
+
+_TOKEN_CHARS = "!#$%&'*+-.^_`|~0123456789abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
+_VALUE_CHARS = st.characters(min_codepoint=0x20, max_codepoint=0xFF, exclude_characters="\x7f")
+
+
+@given(headers=st.lists(st.tuples(st.text(_TOKEN_CHARS, min_size=1, max_size=30),
+                                  st.one_of(st.text(_VALUE_CHARS, max_size=200),
+                                            st.integers(0, 40_000).map(lambda n: "v" * n))),
+                        max_size=130),
+       route=st.sampled_from([("GET", "/healthz"), ("GET", "/v1/jobs"), ("POST", "/v1/jobs"),
+                              ("GET", "/v1/datasets/tiny/versions/1/files/summary.json")]))
+@settings(max_examples=HEADER_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck), database=None)
+def test_fuzz_headers(fuzz_client, fuzz_target, headers, route):
+    """Any number of header fields of any size (Authorization, Range, If-Range, Content-Type and
+    Idempotency-Key among the names the generator may hit): never a 5xx; past the limits, 431."""
+    method, path = route
+    sent = [(name.lower().encode(), value.encode("latin-1")) for name, value in headers
+            if name.lower() not in ("content-length", "host", "transfer-encoding")]
+    _store, _storage, _jobs, watch = fuzz_target
+    before = watch.look()
+    r = fuzz_client.request(method, path, headers=sent, content=b'{"spec": {}}' if method == "POST" else None)
+    assert r.status_code < 500, r.text[:500]
+    size = len(path) + sum(len(n) + len(v) + 4 for n, v in sent)
+    if size > 16384 + 200 or len(sent) > 100:  # the defaults; the client adds a few small headers of its own
+        assert r.status_code == 431, (size, len(sent), r.status_code)
+    if 400 <= r.status_code < 500:
+        assert_reason(r)
+        assert watch.look() == before

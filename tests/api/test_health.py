@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import re
 
+import pytest
+
 from service.datasets import DatasetStorage
 from service.store import JobStore
-from tests.api.conftest import AUTH, TINY_SPEC
+from tests.api.conftest import AUTH, TINY_SPEC, TOKEN
 from tests.support.files import stored
 from tests.support.net import free_port
 
@@ -85,6 +87,37 @@ def test_readyz_503_when_the_store_cannot_be_opened(tmp_path):
         r = client.get("/readyz")
     assert r.status_code == 503 and "job store unavailable" in r.json()["detail"]
     assert "BSSRDF_DATABASE_URL" in r.json()["detail"]
+
+
+@pytest.fixture
+def store_down(tmp_path):
+    """A TestClient of an app whose job store cannot be opened (nothing listens on its port)."""
+    from fastapi.testclient import TestClient
+
+    from service.api import create_app
+    from service.settings import Settings
+
+    settings = Settings(data_dir=str(tmp_path), api_tokens=[TOKEN],
+                        database_url=f"postgresql+psycopg://postgres@127.0.0.1:{free_port()}/x?connect_timeout=2")
+    with TestClient(create_app(settings)) as client:
+        yield client
+
+
+def test_bad_input_is_refused_before_the_store_is_opened(store_down):
+    """With the job store down, bad input is still 4xx (validated first), only good input is 503."""
+    r = store_down.post("/v1/jobs", json={"spec": dict(TINY_SPEC, photons=-1)}, headers=AUTH)
+    assert r.status_code == 422 and r.json()["detail"][0]["field"] == "spec.photons", r.text
+    for method, path in (("GET", "/v1/jobs/xyz"), ("POST", "/v1/jobs/xyz/cancel"), ("DELETE", "/v1/jobs/xyz"),
+                         ("GET", "/v1/jobs/xyz/media")):
+        r = store_down.request(method, path, headers=AUTH)
+        assert r.status_code == 404 and "UUID" in r.json()["detail"], (method, path, r.text)
+    assert store_down.get("/v1/jobs?limit=0").status_code == 422
+    assert store_down.get("/v1/datasets/tiny/versions/0").status_code == 422
+    assert store_down.post("/v1/jobs", json={"spec": TINY_SPEC}).status_code == 401
+    r = store_down.post("/v1/jobs", json={"spec": TINY_SPEC}, headers=AUTH)
+    assert r.status_code == 503 and "BSSRDF_DATABASE_URL" in r.json()["detail"] and r.headers["retry-after"]
+    r = store_down.get(f"/v1/jobs/{'0' * 8}-0000-4000-8000-{'0' * 12}")
+    assert r.status_code == 503 and "job store unavailable" in r.json()["detail"]
 
 
 def test_metrics_prometheus_text(client, store):

@@ -109,6 +109,22 @@ def test_idempotency_key_same_spec_200_other_spec_409(client, store):
     assert forced.status_code == 201 and forced.json()["id"] != first.json()["id"] and forced.json()["existing"] is None
 
 
+def test_a_key_answered_by_the_duplicate_check_is_kept(client, store):
+    """A key whose submission returned an existing job (same spec hash) names that job from then
+    on: the same key with another spec is 409, not a new job; the key then survives no job."""
+    first = client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers={**AUTH, "Idempotency-Key": "k-first"})
+    for key in ("k-dup", "k-dup"):
+        dup = client.post("/v1/jobs", json={"spec": TINY_SPEC}, headers={**AUTH, "Idempotency-Key": key})
+        assert dup.status_code == 200 and dup.json()["id"] == first.json()["id"], dup.text
+    assert dup.json()["existing"] == "idempotency_key"  # the second time: the key itself names it
+    other = client.post("/v1/jobs", json={"spec": tiny_spec(seed=99)}, headers={**AUTH, "Idempotency-Key": "k-dup"})
+    assert other.status_code == 409 and "'k-dup'" in other.json()["detail"] and "use a new key" in other.json()["detail"]
+    assert job_count(store) == 1
+    assert client.delete(f"/v1/jobs/{first.json()['id']}", headers=AUTH).status_code == 200
+    again = client.post("/v1/jobs", json={"spec": tiny_spec(seed=99)}, headers={**AUTH, "Idempotency-Key": "k-dup"})
+    assert again.status_code == 201, again.text  # the job it named is gone, and its keys with it
+
+
 def test_idempotency_header_and_body_must_agree(client, store):
     r = client.post("/v1/jobs", json={"spec": TINY_SPEC, "idempotency_key": "a"},
                     headers={**AUTH, "Idempotency-Key": "b"})

@@ -187,6 +187,30 @@ def test_a_bad_token_setting_is_one_clear_line_not_a_traceback(value, tmp_path):
     assert len(out.stderr.splitlines()) <= 3, out.stderr
 
 
+SECRET = "s3cr3t-Tok3n-0123456789"
+
+
+@pytest.mark.parametrize("value, said", [
+    (SECRET, "text that is not JSON"), (f'["{SECRET}"', "text that is not JSON"), (f'"{SECRET}"', "a JSON string"),
+    (f'{{"{SECRET}": 1}}', "a JSON object"), (f'["{SECRET}", 5]', "entry 2 is a number"),
+    (f'["{SECRET}", ""]', "entry 2 is an empty string"),
+], ids=["bare", "unclosed", "string", "object", "number", "empty"])
+def test_a_bad_token_setting_echoes_no_character_of_the_secret(value, said, tmp_path):
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    env = {"BSSRDF_API_TOKENS": value, "BSSRDF_DATA_DIR": str(tmp_path), "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-m", "service.cli", "serve"], capture_output=True, text=True, env=env,
+                         timeout=60)
+    assert out.returncode == 2 and said in out.stderr, out.stderr
+    pieces = {SECRET[i:i + 4] for i in range(len(SECRET) - 3)}  # no 4 characters of it in a row
+    assert not any(p in out.stderr for p in pieces), out.stderr
+    with pytest.raises(ValidationError) as error:  # the model's own message too (create_app(Settings()))
+        Settings(api_tokens=value)
+    assert not any(p in str(error.value) for p in pieces), str(error.value)
+
+
 def test_serve_help_explains_tokens():
     out = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--help"], capture_output=True, text=True)
     assert "BSSRDF_API_TOKENS" in out.stdout and "Authorization: Bearer TOKEN" in out.stdout
@@ -232,3 +256,63 @@ def test_task_limit_is_a_setting(make_client, store, storage):
     assert job_count(store) == 0
     fits = make_client(store, storage, max_job_tasks=4)
     assert fits.post("/v1/jobs", json={"spec": spec}, headers=AUTH).status_code == 201
+
+
+def with_literal(body: dict, marker: str, literal: str) -> bytes:
+    """``body`` as JSON with the string ``marker`` replaced by a raw JSON literal."""
+    return json.dumps(body).replace(json.dumps(marker), literal).encode()
+
+
+@pytest.mark.parametrize("digits", [309, 400, 4300, 4301, 5000, 200_000])
+@pytest.mark.parametrize("where, field", [
+    (lambda v: {"spec": tiny_spec(photons=v)}, "spec.photons"),
+    (lambda v: {"spec": tiny_spec(seed=v)}, "spec.seed"),
+    (lambda v: {"spec": tiny_spec(medium={"sigma_a": v, "sigma_s": 1.0, "g": 0.0, "eta": 1.3})},
+     "spec.medium.sigma_a.float"),
+    (lambda v: {"spec": tiny_spec(), "unknown": v}, "unknown"),
+], ids=["photons", "seed", "sigma_a", "unknown-key"])
+def test_integers_of_any_length_are_422_naming_the_field(client, store, caplog, digits, where, field):
+    sign = "-" * (field == "spec.seed")
+    r = client.post("/v1/jobs", content=with_literal(where("N"), "N", sign + "9" * digits), headers=JSON)
+    p = one_problem(r, field)
+    # 4 significant digits; past 400 digits (service.api.bodies.LongInt) the leading ones and the length
+    assert p["received"] == sign + (f"1.000e+{digits}" if digits <= 400 else f"9.9999...e+{digits - 1}"), p
+    assert len(r.content) < 2000, len(r.content)
+    assert all("9" * 100 not in rec.getMessage() for rec in caplog.records)  # the log never holds the number
+    assert job_count(store) == 0
+
+
+@pytest.mark.parametrize("body, field, reason", [
+    (b'{"spec": ' + b"[" * 50_000 + b"]" * 50_000 + b"}", "body", "nest too deep for the parser"),
+    (json.dumps({"spec": tiny_spec()}).encode("utf-16"), "body", "JSON must be UTF-8 (RFC 8259)"),
+    (json.dumps({"spec": tiny_spec()}).encode("utf-16-le"), "body", "JSON must be UTF-8 (RFC 8259)"),
+    (json.dumps({"spec": tiny_spec()}).encode("utf-16-be"), "body", "JSON must be UTF-8 (RFC 8259)"),
+    (json.dumps({"spec": tiny_spec()}).encode("utf-32"), "body", "JSON must be UTF-8 (RFC 8259)"),
+], ids=["nested-50000-deep", "utf-16", "utf-16-le", "utf-16-be", "utf-32"])
+def test_bodies_that_are_not_json_in_utf8_are_422_naming_the_body(client, store, body, field, reason):
+    p = one_problem(client.post("/v1/jobs", content=body, headers=JSON), field)
+    assert reason in p["message"] and "not valid JSON" in p["message"], p
+    assert job_count(store) == 0
+
+
+def test_too_deep_a_body_says_where(client):
+    p = one_problem(client.post("/v1/jobs", content=b'{"spec": ' + b"[" * 5000, headers=JSON), "body")
+    assert "at character 107" in p["message"], p  # 9 characters, then the 100th bracket
+
+
+def test_a_utf8_byte_order_mark_is_ignored(client):
+    body = b"\xef\xbb\xbf" + json.dumps({"spec": tiny_spec()}).encode()
+    assert client.post("/v1/jobs", content=body, headers=JSON).status_code == 201
+
+
+@pytest.mark.parametrize("body", [
+    b'{"spec": {"name": "x",, }}', b"\xff\xfe{", b'{"spec": ' + b"[" * 50_000,
+    json.dumps({"spec": tiny_spec()}).encode("utf-16"), with_literal({"spec": tiny_spec(seed="N")}, "N", "9" * 5000),
+], ids=["malformed", "not-utf8", "too-deep", "utf-16", "5000-digits"])
+def test_a_bad_body_without_a_token_is_401_before_422(client, store, body):
+    r = client.post("/v1/jobs", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 401 and "bearer token" in r.json()["detail"], r.text
+    r = client.post("/v1/jobs", content=body, headers={"content-type": "application/json",
+                                                       "Authorization": "Bearer wrong"})
+    assert r.status_code == 401, r.text
+    assert job_count(store) == 0

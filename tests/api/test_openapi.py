@@ -41,7 +41,8 @@ def test_errors_are_documented_as_they_are_sent(make_client, sqlite_store, stora
                 assert list(response["content"]) == ["application/json"], (path, method, status)
             if status == "422":
                 assert response["content"]["application/json"]["schema"]["$ref"].endswith("/ValidationErrorBody")
-    assert "413" in doc["paths"]["/v1/jobs"]["post"]["responses"]
+    assert {"408", "413", "431"} <= set(doc["paths"]["/v1/jobs"]["post"]["responses"])
+    assert all("431" in op["responses"] for ops in doc["paths"].values() for op in ops.values())
     for route in ("/v1/datasets/{name}/versions/{version}", "/v1/datasets/{name}/versions/{version}/files/{filename}",
                   "/v1/datasets/{name}/versions/{version}/exports/{format}"):
         assert "410" in doc["paths"][route]["get"]["responses"], route

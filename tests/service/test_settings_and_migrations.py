@@ -76,3 +76,26 @@ def test_in_memory_sqlite_is_refused():
 
     with pytest.raises(ValueError, match="SQLite file"):
         JobStore("sqlite://")
+
+
+def test_migration_0006_keeps_the_keys_of_existing_jobs(db_url):
+    """Keys stored in jobs.idempotency_key before 0006 still name their jobs after it."""
+    from alembic import command
+    from alembic.config import Config
+
+    from service.store import IdempotencyConflict, JobStore
+    from service.store.store import MIGRATIONS_DIR
+    from tests.service.conftest import FakeSpec
+
+    store = JobStore(db_url)
+    job = store.submit(FakeSpec("x", seed=1), idempotency_key="k-old")
+    cfg = Config()
+    cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
+    with store.engine.begin() as conn:
+        cfg.attributes["connection"] = conn
+        command.downgrade(cfg, "0005_task_phase")
+    store.migrate()
+    assert store.submit(FakeSpec("x", seed=1), idempotency_key="k-old").id == job.id
+    with pytest.raises(IdempotencyConflict, match="k-old"):
+        store.submit(FakeSpec("x", seed=2), idempotency_key="k-old")
+    store.dispose()

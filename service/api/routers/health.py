@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, HTTPException
 from fastapi.responses import JSONResponse, PlainTextResponse
 
 from service.api.deps import ReadAuthDep, StorageDep, StoreDep
@@ -46,6 +46,8 @@ def readyz(store: StoreDep, storage: StorageDep) -> Readiness | JSONResponse:
         try:
             target.ping()
             checks[what] = "ok"
+        except HTTPException:
+            raise  # the store could not even be opened (service.api.deps.StoreUnavailable): 503 with detail
         except Exception as exc:
             checks[what] = _first_line(exc)
     ready = all(v == "ok" for v in checks.values())

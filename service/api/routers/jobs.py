@@ -8,6 +8,7 @@ from fastapi import APIRouter, Header, Query, Response, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
+from service.api.bodies import JSONRoute
 from service.api.deps import AuthDep, JobDep, JobIdPath, ReadAuthDep, SettingsDep, StorageDep, StoreDep, lookup_job
 from service.api.errors import error_responses
 from service.api.limits import spec_limit_problems
@@ -19,7 +20,8 @@ from service.store import JobState
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+# JSONRoute: a body is parsed as UTF-8 JSON and refused after the token (service.api.bodies).
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=JSONRoute)
 
 OFFSET_MAX = 2**31 - 1
 """Largest list offset (bound so that no database integer overflows)."""
