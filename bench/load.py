@@ -38,7 +38,7 @@ import httpx
 
 from service.runner import stop_workers
 
-__all__ = ["LoadReport", "run_load", "load_spec", "percentile", "main"]
+__all__ = ["LoadReport", "run_load", "load_spec", "percentile", "wait_ready", "main"]
 
 _REPO = Path(__file__).resolve().parents[1]
 TOKEN = "bench-load-token"
@@ -114,6 +114,21 @@ def _start(args: list[str], log: Path, env: dict[str, str], nice: int = 0) -> su
         return subprocess.Popen([sys.executable, "-m", "service.cli", *args], env=env, stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, cwd=log.parent,
                                 preexec_fn=(lambda: os.nice(nice)) if nice else None)
+
+
+def wait_ready(base: str, serve: subprocess.Popen, log: Path, timeout: float = 60.0) -> None:
+    """Until ``bssrdf serve`` at ``base`` answers /readyz with 200; RuntimeError with the end of
+    its log if it exits or takes longer than ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        if serve.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"bssrdf serve did not start: {log.read_text()[-2000:]}")
+        try:
+            if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
 
 
 async def _drive(base: str, jobs: int, reads: int, clients: int, report: LoadReport) -> list[str]:
@@ -215,16 +230,7 @@ def run_load(db_url: str | None = None, *, jobs: int = 1000, reads: int = 10000,
                      "--log-level", "warning"], root / "serve.log", env)]
     try:
         base = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 60
-        while True:
-            if procs[0].poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"bssrdf serve did not start: {(root / 'serve.log').read_text()[-2000:]}")
-            try:
-                if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
+        wait_ready(base, procs[0], root / "serve.log")
         procs += [_start(["worker", "--db", db_url, "--storage", storage, "--poll-seconds", "0.2",
                           "--worker-id", f"load-{i}"], root / f"worker-{i}.log", env, worker_nice)
                   for i in range(workers)]

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import httpx
 
-from bench.load import TOKEN, _env, _free_port, _start, load_spec, percentile
+from bench.load import TOKEN, _env, _free_port, _start, load_spec, percentile, wait_ready
 from service.runner import stop_workers
 
 __all__ = ["large_spec", "run", "main"]
@@ -82,16 +82,7 @@ def run(db_url: str | None, tasks: int, repeat: int) -> dict:
     rounds = []
     try:
         base = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 60
-        while True:
-            if procs[0].poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"bssrdf serve did not start: {(root / 'serve.log').read_text()[-2000:]}")
-            try:
-                if httpx.get(f"{base}/readyz", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
+        wait_ready(base, procs[0], root / "serve.log")
         seeds = itertools.count(1)
         headers = {"Authorization": f"Bearer {TOKEN}"}
         with httpx.Client(base_url=base, timeout=120.0, headers=headers) as small, \
