@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -33,6 +32,8 @@ import time
 from pathlib import Path
 
 import httpx
+
+from service.runner import stop_workers
 
 from bench.load import percentile
 
@@ -167,11 +168,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.huge_bytes:,} B header: status {status} after {elapsed * 1e3:.1f} ms; "
                   f"server peak RSS {_peak_rss_mib(server.pid):.0f} MiB")
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(15)
-        except subprocess.TimeoutExpired:
-            server.kill()
+        stop_workers([server])  # SIGTERM, then SIGKILL after 15 s
     return 0
 
 

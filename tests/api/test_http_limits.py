@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -23,6 +22,8 @@ import httpx
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
+from service.runner import stop_workers
 
 from tests.support.fuzzing import examples
 from tests.support.net import free_port
@@ -57,12 +58,7 @@ def server(tmp_path_factory):
         wait_for(up, 30, "bssrdf serve to be ready", poll=0.2)
         yield "127.0.0.1", port
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_workers([proc])  # SIGTERM, then SIGKILL after 15 s
         log.close()
 
 
