@@ -77,7 +77,8 @@ def main(args: argparse.Namespace) -> int:
         return 2
     # The job store URL is checked like the worker's (service.store.opening): one line and exit 2
     # for a URL that is not a job store or an SQLite file in a missing directory (only the embedded
-    # default creates its directory). A server that does not answer is not fatal: the API starts,
+    # default creates its directory) or a database or user the server refuses. A server that does
+    # not answer is not fatal: the API starts,
     # /readyz answers 503 naming the reason, and requests work once the database is up.
     url = settings.database_url
     try:

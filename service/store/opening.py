@@ -30,8 +30,14 @@ class StoreUnavailable(StoreError):
 
 
 class StoreUnreachable(StoreUnavailable):
-    """The URL is well formed but its database server did not answer or refused the connection
-    (down, or a wrong host, port, database name or user)."""
+    """The URL is well formed but no database server answered it (down, or a wrong host or port);
+    a server that answers and refuses the URL's database or user is a plain StoreUnavailable."""
+
+
+_REFUSALS = ("does not exist", "password authentication failed", "no pg_hba.conf entry")
+"""What PostgreSQL answers to a database or role that is not there, or credentials it refuses
+(libpq's messages; psycopg gives no SQLSTATE for a failed connection): a wrong URL, not an
+outage. A server starting up or out of connections is an outage (StoreUnreachable)."""
 
 
 def open_store(url: str, *, create_dir: bool = False, **kwargs: Any) -> JobStore:
@@ -43,7 +49,10 @@ def open_store(url: str, *, create_dir: bool = False, **kwargs: Any) -> JobStore
     except ValueError as exc:
         raise StoreUnavailable(_one_line(exc)) from None
     except DBAPIError as exc:
-        raise StoreUnreachable(f"cannot reach the job store {shown}: {_one_line(exc.orig)}") from None
+        message = f"cannot reach the job store {shown}: {_one_line(exc.orig)}"
+        if any(refusal in message for refusal in _REFUSALS):  # the URL is wrong, not the server down
+            raise StoreUnavailable(message) from None
+        raise StoreUnreachable(message) from None
 
 
 def check_store_url(url: str, *, create_dir: bool = False) -> str:

@@ -1,7 +1,7 @@
 """`bssrdf serve` given a wrong job store URL says so in one line and exits 2, like the worker
 (tests/service/test_worker_bad_url.py): a URL that is not one, an unsupported backend, an
-in-memory SQLite database, an SQLite file in a directory that does not exist (never created). A
-database server that does not answer is not fatal for the API (it starts and /readyz says why):
+in-memory SQLite database, an SQLite file in a directory that does not exist (never created), a
+PostgreSQL database or user the server refuses. A database server that does not answer is not fatal for the API (it starts and /readyz says why):
 serve warns in one line and serves."""
 
 from __future__ import annotations
@@ -51,6 +51,25 @@ def test_sqlite_in_a_missing_directory_is_refused_and_not_created(tmp_path):
 ])
 def test_a_url_that_is_not_a_job_store_is_refused(tmp_path, url, needle):
     _refused(_serve(tmp_path, "--db", url), needle)
+
+
+def _pg_variants():
+    base = pg_base_url()
+    if base is None:
+        return []
+    from sqlalchemy.engine import make_url
+
+    u = make_url(base)
+    return [
+        pytest.param(u.set(database="no_such_database").render_as_string(False), "no_such_database", id="database"),
+        pytest.param(u.set(username="no_such_user").render_as_string(False), "no_such_user", id="user"),
+    ]
+
+
+@pytest.mark.skipif(pg_base_url() is None, reason="PostgreSQL tests need BSSRDF_TEST_POSTGRES_URL")
+@pytest.mark.parametrize("url, needle", _pg_variants())
+def test_a_postgresql_database_or_user_that_is_not_there_is_refused(tmp_path, url, needle):
+    _refused(_serve(tmp_path, "--db", url), "cannot reach the job store", needle)
 
 
 def _free_port() -> int:
