@@ -270,7 +270,8 @@ def run(db_url: str, root: Path) -> Bench:
                          (u.set(database="no_such_database").render_as_string(False), "no_such_database"),
                          (u.set(username="no_such_user").render_as_string(False), "no_such_user")]
         for url, needle in variants:
-            shown = url.split("@")[-1] if "@" in url else url.replace(str(root), "TMP")
+            shown = make_url(url).render_as_string(hide_password=True) if "://" in url else url
+            shown = shown.replace(str(root), "TMP")
             b.command("7", ["worker", "--db", url, "--storage", str(root / "w-data"), "--once"],
                       f"bssrdf worker --db {shown}", 2, root / "nonexistent", needle)
             if needle != "cannot reach":  # serve starts on a server that does not answer (/readyz says why)
