@@ -66,10 +66,26 @@ def main(args: argparse.Namespace) -> int:
     from service.api import InsecureBindError, create_app
     from service.api.server import limited_protocol
 
+    from service.settings import sqlite_url_for
+    from service.store import StoreUnavailable, StoreUnreachable, open_store
+
     try:
         settings = build_settings(args)
         app = create_app(settings)
     except (InsecureBindError, ValidationError) as exc:
+        print(f"bssrdf serve: {exc}", file=sys.stderr)
+        return 2
+    # The job store URL is checked like the worker's (service.store.opening): one line and exit 2
+    # for a URL that is not a job store or an SQLite file in a missing directory (only the embedded
+    # default creates its directory) or a database or user the server refuses. A server that does
+    # not answer is not fatal: the API starts,
+    # /readyz answers 503 naming the reason, and requests work once the database is up.
+    url = settings.database_url
+    try:
+        open_store(url, create_dir=url == sqlite_url_for(settings.data_dir), pool_size=1).dispose()
+    except StoreUnreachable as exc:
+        print(f"bssrdf serve: warning: {exc}; serving anyway (/readyz answers 503 until it is up)", file=sys.stderr)
+    except StoreUnavailable as exc:
         print(f"bssrdf serve: {exc}", file=sys.stderr)
         return 2
     uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level,

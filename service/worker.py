@@ -34,6 +34,7 @@ from service.datasets import DatasetStorage, JobFiles, run_merge_task
 from service.logs import configure_logging
 from service.settings import settings_or_exit, sqlite_url_for
 from service.store import JobNotFound, JobStore, Lease, LeaseLost, StoreUnavailable, TaskKind, open_store
+from workers.finite import NonFiniteResult
 
 __all__ = ["Worker", "add_parser", "main", "compile_phase"]
 
@@ -235,7 +236,9 @@ class Worker:
         except Exception as exc:  # the task failed: record it (retry or fail the job)
             error = f"{type(exc).__name__}: {exc}"
             try:
-                retried = self.store.fail_task(lease, error)
+                # A non-finite table is deterministic (the same shards merge to the same numbers):
+                # the job fails at once, naming the medium and the column, instead of retrying.
+                retried = self.store.fail_task(lease, error, final=isinstance(exc, NonFiniteResult))
                 log.error("task failed", extra={**fields, "error": error, "will_retry": retried})
             except (LeaseLost, JobNotFound):
                 log.warning("task failed after its lease was lost", extra={**fields, "error": error})

@@ -25,12 +25,14 @@ from service.store.records import (
 from service.store.retry import RetryDecision, RetryPolicy, decide_retry
 from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
 from service.store.store import JobStore
-from service.store.opening import StoreUnavailable, open_store
+from service.store.opening import StoreUnavailable, StoreUnreachable, check_store_url, open_store
 
 __all__ = [
     "JobStore",
     "open_store",
     "StoreUnavailable",
+    "StoreUnreachable",
+    "check_store_url",
     "JobRecord",
     "JobProgress",
     "Submission",

@@ -20,7 +20,7 @@ from sqlalchemy.exc import ArgumentError, DBAPIError
 from service.store.errors import StoreError
 from service.store.store import JobStore
 
-__all__ = ["StoreUnavailable", "open_store"]
+__all__ = ["StoreUnavailable", "StoreUnreachable", "check_store_url", "open_store"]
 
 _FORMS = "sqlite:///FILE or postgresql+psycopg://USER@HOST:PORT/DATABASE"
 
@@ -29,9 +29,36 @@ class StoreUnavailable(StoreError):
     """The job store of a URL cannot be opened; the message is one line."""
 
 
+class StoreUnreachable(StoreUnavailable):
+    """The URL is well formed but no database server answered it (down, or a wrong host or port);
+    a server that answers and refuses the URL's database or user is a plain StoreUnavailable."""
+
+
+_REFUSALS = ("does not exist", "password authentication failed", "no pg_hba.conf entry")
+"""What PostgreSQL answers to a database or role that is not there, or credentials it refuses
+(libpq's messages; psycopg gives no SQLSTATE for a failed connection): a wrong URL, not an
+outage. A server starting up or out of connections is an outage (StoreUnreachable)."""
+
+
 def open_store(url: str, *, create_dir: bool = False, **kwargs: Any) -> JobStore:
     """``JobStore(url, **kwargs)``, or :class:`StoreUnavailable` saying in one line what is wrong
     (module docstring)."""
+    shown = check_store_url(url, create_dir=create_dir)
+    try:
+        return JobStore(url, **kwargs)
+    except ValueError as exc:
+        raise StoreUnavailable(_one_line(exc)) from None
+    except DBAPIError as exc:
+        message = f"cannot reach the job store {shown}: {_one_line(exc.orig)}"
+        if any(refusal in message for refusal in _REFUSALS):  # the URL is wrong, not the server down
+            raise StoreUnavailable(message) from None
+        raise StoreUnreachable(message) from None
+
+
+def check_store_url(url: str, *, create_dir: bool = False) -> str:
+    """The checks of :func:`open_store` that need no database server: :class:`StoreUnavailable`
+    for a URL that is not one or an SQLite file in a directory that does not exist (created
+    instead if ``create_dir``). Returns the URL to show (password hidden)."""
     try:
         parsed = make_url(url)
     except ArgumentError:
@@ -45,12 +72,7 @@ def open_store(url: str, *, create_dir: bool = False, **kwargs: Any) -> JobStore
                     f"job store {shown}: the directory {directory} does not exist; create it or correct the "
                     "URL (no database is created outside an existing directory)")
             directory.mkdir(parents=True, exist_ok=True)
-    try:
-        return JobStore(url, **kwargs)
-    except ValueError as exc:
-        raise StoreUnavailable(_one_line(exc)) from None
-    except DBAPIError as exc:
-        raise StoreUnavailable(f"cannot reach the job store {shown}: {_one_line(exc.orig)}") from None
+    return shown
 
 
 def _one_line(exc: BaseException) -> str:

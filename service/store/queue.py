@@ -231,11 +231,13 @@ class QueueMixin(StoreBase):
                 .values(state=TaskState.QUEUED)
             )
 
-    def fail_task(self, lease: Lease, error: str) -> bool:
+    def fail_task(self, lease: Lease, error: str, *, final: bool = False) -> bool:
         """Record a failed attempt. Returns True if the task will be retried.
 
         The retry decision is :func:`service.store.retry.decide_retry`; without attempts left the
-        task fails and its job fails with ``error`` kept. Raises :class:`LeaseLost` if stale.
+        task fails and its job fails with ``error`` kept. ``final``: the failure is deterministic
+        (another attempt would fail the same way, e.g. a non-finite table), so the task and its
+        job fail at once whatever attempts are left. Raises :class:`LeaseLost` if stale.
         """
         with self._tx() as conn:
             self._lock_job(conn, lease.job_id)
@@ -246,7 +248,7 @@ class QueueMixin(StoreBase):
                 raise LeaseLost(lease.task_id, lease.token, "cannot record the failure")
             decision = decide_retry(row.attempts, row.max_attempts, self.retry_policy)
             now = self._now()
-            if decision.retry:
+            if decision.retry and not final:
                 conn.execute(
                     sa.update(tasks).where(tasks.c.id == lease.task_id).values(
                         state=TaskState.QUEUED, error=error, lease_expires_at=None,
@@ -260,8 +262,9 @@ class QueueMixin(StoreBase):
                 )
             )
             what = "merge" if lease.kind == TaskKind.MERGE else f"shard {lease.shard_index}"
-            self._end_job(conn, lease.job_id, JobState.FAILED,
-                          error=f"{what} failed after {row.attempts} attempts: {error}")
+            after = "(not retried: it would fail the same way)" if final and decision.retry else \
+                f"after {row.attempts} attempts"
+            self._end_job(conn, lease.job_id, JobState.FAILED, error=f"{what} failed {after}: {error}")
             return False
 
     def pending_tasks(self) -> int:

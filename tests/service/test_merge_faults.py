@@ -152,7 +152,7 @@ def test_sigkill_while_publishing(spec, expected, tmp_path, point):
     store.dispose()
 
 
-def test_a_worker_paused_at_publish_blocks_no_submission(spec, expected, tmp_path):
+def test_a_worker_paused_at_publish_blocks_no_submission(spec, expected, tmp_path, db_url):
     """A worker stopped inside the publish (files moved to NAME/v1, catalog row not committed)
     holds no SQLite write lock: a ``POST /v1/jobs`` meanwhile is answered at once (it used to
     wait out the 30 s busy timeout and get 503 "database is locked"); the job publishes after."""
@@ -162,7 +162,7 @@ def test_a_worker_paused_at_publish_blocks_no_submission(spec, expected, tmp_pat
     from service.settings import Settings
     from tests.api.conftest import TINY_SPEC
 
-    db, storage_uri = f"sqlite:///{tmp_path / 'jobs.sqlite'}", str(tmp_path / "data")
+    db, storage_uri = db_url, str(tmp_path / "data")
     job_id = stage_job(db, storage_uri, spec)
     store, storage = JobStore(db), DatasetStorage(storage_uri)
     victim = _paused_worker(db, storage_uri, tmp_path / "logs", "publish")
@@ -183,4 +183,30 @@ def test_a_worker_paused_at_publish_blocks_no_submission(spec, expected, tmp_pat
         _kill(victim)
     _rescue(store, storage, db, storage_uri, tmp_path / "logs2", job_id)
     assert _published(store, storage, job_id) == expected
+    store.dispose()
+
+
+def test_a_cancel_during_a_paused_publish_is_answered_at_once_and_nothing_is_published(spec, tmp_path, db_url):
+    """The stalled publish holds no lock of its job either: cancelling the job meanwhile is
+    answered at once (on PostgreSQL it used to wait for the publishing transaction, which held the
+    job row, until the worker died), the cancel wins, and the worker's late commit publishes
+    nothing (its lease is fenced)."""
+    db, storage_uri = db_url, str(tmp_path / "data")
+    job_id = stage_job(db, storage_uri, spec)
+    store = JobStore(db)
+    victim = _paused_worker(db, storage_uri, tmp_path / "logs", "publish")
+    try:
+        answers = []
+        canceller = threading.Thread(target=lambda: answers.append(store.cancel(job_id)), daemon=True)
+        canceller.start()
+        canceller.join(10)
+        assert not canceller.is_alive(), "the cancel waited for the paused publish"
+        assert answers[0].state == JobState.CANCELLED, answers[0]
+        os.kill(victim.pid, signal.SIGCONT)  # let it try its commit: refused, the lease is fenced
+        log = tmp_path / "logs" / "worker-0.log"
+        wait_for(lambda: "result refused: lease lost" in log.read_text(), 60, "the late commit to be refused")
+    finally:
+        stop_workers([victim])
+    assert store.get_job(job_id).state == JobState.CANCELLED
+    assert store.list_versions(spec.name, deleted=True) == []
     store.dispose()

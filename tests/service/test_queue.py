@@ -115,6 +115,16 @@ def test_failures_retry_then_fail_job_with_error_kept(store):
     assert store.claim("w", 30) is None  # the other shard was cancelled with its job
 
 
+def test_a_final_failure_fails_the_job_at_the_first_attempt(store):
+    job = store.submit(FakeSpec(shards=2))
+    lease = store.claim("w", 30)
+    assert store.fail_task(lease, "NonFiniteResult: medium 0", final=True) is False
+    failed = store.get_job(job.id)
+    assert failed.state == JobState.FAILED
+    assert "not retried" in failed.error and "NonFiniteResult: medium 0" in failed.error, failed.error
+    assert store.claim("w", 30) is None
+
+
 def test_expired_leases_exhaust_attempts_and_fail_job(store):
     job = store.submit(FakeSpec(shards=1))
     for _ in range(3):
