@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     walk_s = None
     if args.walk_spec:
         from schema import load_spec
-        from workers.shard import run_shard
+        from workers.run.shard import run_shard
 
         spec = load_spec(args.walk_spec)
         t0 = time.perf_counter()

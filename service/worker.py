@@ -260,7 +260,7 @@ class Worker:
         """Run task ``lease.shard_index`` (shard s of medium m, schema.media), write its tally as
         a file in the job's staging area, and commit the file's URI, size and sha256.
 
-        While a kernel compiles (:func:`workers.kernels.observe_compiles`) the heartbeat reports
+        While a kernel compiles (:func:`workers.walk.kernels.observe_compiles`) the heartbeat reports
         the phase at once (:func:`compile_phase`) and the stall clock is held: a compile is not
         a hung walk."""
         phase = [None] if phase is None else phase
@@ -334,10 +334,10 @@ class Worker:
     def _walk(self, lease: Lease, progress) -> tuple[bytes, int, float]:
         """Walk the leased shard: its tally's bytes, its photons and the walk's seconds
         (``bench.fleet`` puts an instant fake here to load the queue alone)."""
-        # Deferred, not a cycle: workers.sweep imports torch (seconds), and building the `bssrdf`
+        # Deferred, not a cycle: workers.fold.sweep imports torch (seconds), and building the `bssrdf`
         # parser imports this module; only a process that runs a shard pays for it.
-        from workers.kernels import observe_compiles
-        from workers.sweep import run_task
+        from workers.walk.kernels import observe_compiles
+        from workers.fold.sweep import run_task
 
         with observe_compiles(getattr(progress, "compiling", lambda _kernel, _started: None)):
             tally = run_task(self._spec(lease), lease.shard_index, progress=progress)

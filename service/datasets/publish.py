@@ -3,7 +3,7 @@
 Each claim of a job's merge task is one *round* (:func:`run_merge_task`):
 
 1. restore the fold the job store records (``jobs.folded``, ``fold_uri``: a
-   :class:`workers.sweep.JobFold` saved as a file in the job's staging area, sha256 checked),
+   :class:`workers.fold.sweep.JobFold` saved as a file in the job's staging area, sha256 checked),
    or start one;
 2. fold the done tasks from there on, in task order, each shard file read once and checked
    against its recorded sha256, into one float64 accumulator per medium (memory: the
@@ -63,8 +63,8 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
     published one, else None (the fold advanced and waits for more shards)."""
     # Deferred, not a cycle: the fold imports torch (seconds), which the API process, importing
     # this package for dataset reads, never needs.
-    from workers.sweep import JobFold, target_rule
-    from workers.tally import ShardTally
+    from workers.fold.sweep import JobFold, target_rule
+    from workers.fold.tally import ShardTally
 
     t0 = time.perf_counter()
     spec = parse_spec(json.loads(lease.spec_json))
@@ -96,7 +96,7 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
             continue
         if len(fold.skipped):
             skipped.append(fold.skipped)
-        if spec.is_sweep:  # every medium of the walk group that finished (workers.sweep.JobFold)
+        if spec.is_sweep:  # every medium of the walk group that finished (workers.fold.sweep.JobFold)
             for finished in fold.finished:
                 parts[str(finished.medium_index)] = _write_part(files, finished)
         last = result
@@ -122,7 +122,7 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
 
 def _write_part(files: JobFiles, result) -> dict[str, dict]:
     """A finished medium's tables as a part of the job; their recorded uri, size and sha256."""
-    from workers.sweep import PART_FILES, write_part
+    from workers.fold.sweep import PART_FILES, write_part
 
     directory = files.part_dir(result.medium_index)
     write_part(result, directory, files.fs)
@@ -137,7 +137,7 @@ def _write_part(files: JobFiles, result) -> dict[str, dict]:
 
 def _read_parts(files: JobFiles, parts: dict, media: int):
     """Each medium's (radial, bins, summary) tables in medium order, sha256 checked, one at a time."""
-    from workers.sweep import PART_FILES
+    from workers.fold.sweep import PART_FILES
 
     for m in range(media):
         refs = parts[str(m)]
@@ -147,8 +147,8 @@ def _read_parts(files: JobFiles, parts: dict, media: int):
 
 def _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_files) -> int:
     """Write the job's tables and metadata into a staging directory and publish the version."""
-    from workers.output import summary, summary_head, write_tables
-    from workers.sweep import sweep_run_facts, write_sweep_tables
+    from workers.fold.output import summary, summary_head, write_tables
+    from workers.fold.sweep import sweep_run_facts, write_sweep_tables
 
     job = store.get_job(lease.job_id)
     t_fold = time.perf_counter()

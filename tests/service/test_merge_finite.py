@@ -13,7 +13,7 @@ from bench.merge import bench_spec
 from service.datasets import DatasetStorage, JobFiles
 from service.store import JobState, JobStore, RetryPolicy, VersionNotFound
 from service.worker import Worker
-from workers.shard import run_shard
+from workers.run.shard import run_shard
 
 SHARDS = 2
 

@@ -9,7 +9,7 @@ through a surface element dA at x_o after this one scattering and no other is
 1/eta), zero under total internal reflection).  Two techniques sample x_o:
 
 - *uniform*: for every spatial bin, x_o uniform in (r, theta_s) of the bin (theta_s bins centred
-  on +x, workers.conventions), density per area q_u = 1 / (r dr dtheta_s);
+  on +x, workers.walk.conventions), density per area q_u = 1 / (r dr dtheta_s);
 - *phase*: the direction the walk samples from the phase function at this vertex, followed to the
   surface, density per area q_p = p(w_p . w21) cos_in / d^2 (zero if it heads down).
 
@@ -18,7 +18,7 @@ direction (balance heuristic, one sample per technique).  Since f / q_p = w albe
 every contribution is bounded by w * albedo: the estimator has finite variance, unlike uniform
 sampling alone (whose integrand grows like |z|/d^3 under a shallow vertex).  Outside the last
 radial edge only the phase technique samples, giving the flux beyond r_max.  S gets the same
-with T cos_in / cos_o in place of T cos_in (:func:`workers.optics.transmittance_cos_ratio`:
+with T cos_in / cos_o in place of T cos_in (:func:`workers.walk.optics.transmittance_cos_ratio`:
 bounded, and exactly 1 at eta = 1), divided by A Omega when results are formed; S = G / cos_o
 with a float cos_o that rounds to 0 at grazing angles blew up to 1e17-1e24 at eta = 1.  Vertices after the first scattering contribute to
 ``multiple``, the first to ``single``.
@@ -170,7 +170,7 @@ def connect_uniform(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     r_lo = geo.r_lo[cfg].repeat_interleave(n_t, dim=1)  # [V, n_bins], bin = ir * n_t + it
     dr = geo.r_hi[cfg].repeat_interleave(n_t, dim=1) - r_lo
     dtheta = TWO_PI / n_t
-    # theta_s bin k is [(k - 1/2) h, (k + 1/2) h), centred on +x (workers.conventions).
+    # theta_s bin k is [(k - 1/2) h, (k + 1/2) h), centred on +x (workers.walk.conventions).
     theta_lo = ((torch.arange(n_bins) % n_t).to(torch.float32) - 0.5) * dtheta
     r = r_lo + u_r * dr
     theta = theta_lo[None, :] + u_t * dtheta

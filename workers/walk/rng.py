@@ -140,7 +140,7 @@ def native_wide_multiply() -> bool:
     int64 vector multiply one element at a time) on int32 words.  Both forms give the same words
     (tested), so this only selects the arithmetic.  Asks ATen's CPU capability, the vector ISA
     inductor generates for unless told otherwise (asking inductor itself costs seconds of probe
-    builds per process).  Call it before tracing (workers.kernels does): traced code only reads
+    builds per process).  Call it before tracing (workers.walk.kernels does): traced code only reads
     the cached answer, and takes the int32 form while nobody has asked.
     """
     global _native_wide

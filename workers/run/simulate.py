@@ -1,7 +1,7 @@
 """`bssrdf simulate`: measure a BSSRDF table without the job service and write its tables.
 
 Runs the shards of the spec on this machine without the job service (one worker process per
-core, see :mod:`workers.pool`), merges them and writes radial.parquet, bins.parquet,
+core, see :mod:`workers.run.pool`), merges them and writes radial.parquet, bins.parquet,
 summary.parquet and summary.json into --out.
 """
 
@@ -29,14 +29,14 @@ __all__ = ["add_parser", "main", "simulate", "simulate_to_target", "simulate_swe
 def simulate(spec, *, progress=None, threads: int | None = None, processes: int | None = None):
     """Run every shard of a single-medium `spec` and merge them; returns the Result.
 
-    processes > 1 runs the shards on that many worker processes (:class:`workers.pool.ShardPool`,
+    processes > 1 runs the shards on that many worker processes (:class:`workers.run.pool.ShardPool`,
     what the command line does); otherwise they run in this process on `threads` threads (default:
     one per core), each with one torch intra-op thread.  The merge sums in shard order, so the
     result is bitwise the same for any number of threads or processes.  A spec with a ``target``
     runs to it (:func:`simulate_to_target`).  A sweep has one Result per medium:
     :func:`simulate_sweep` writes its tables.
     """
-    from .merge import merge
+    from workers.fold.merge import merge
 
     if spec.is_sweep:
         raise ValueError("simulate() runs one medium; a sweep's tables are written by simulate_sweep(spec, out_dir)")
@@ -49,15 +49,15 @@ def simulate_to_target(spec, *, progress=None, threads: int | None = None, proce
     """Run shards in shard order until the merge of shards 0..K-1 meets ``spec.target``.
 
     Shards run in waves of as many as run at once (processes, else threads); after each wave the
-    finished shards are folded in order and :func:`workers.target.target_status` is checked after
+    finished shards are folded in order and :func:`workers.fold.target.target_status` is checked after
     every one of them, so K is the first prefix that meets the target whatever the wave size, and
     the result is bitwise the merge of those K shards (shards after K that ran in the same wave
     are dropped).  Without meeting it, all ``spec.shards`` shards run (``photons`` is the cap).
     ``result.target`` holds the status of the returned merge.
     """
-    from .merge import Fold
+    from workers.fold.merge import Fold
     from .pool import ShardPool
-    from .target import target_status
+    from workers.fold.target import target_status
 
     width = max(1, min(spec.shards, processes if processes is not None else threads or os.cpu_count() or 1))
     with contextlib.ExitStack() as stack:
@@ -88,9 +88,9 @@ def run_shards(spec, indices, *, progress=None, threads: int | None = None, proc
 def run_tasks(items, *, progress=None, threads: int | None = None, processes: int | None = None,
               workers_hint: int | None = None, window: int | None = None):
     """run_shard(spec, index) of each item (spec, index) of `items` (lazily drawn; an item
-    (spec, index, member albedos) also tallies those albedos from the walk, workers.reweight), on `processes` worker
+    (spec, index, member albedos) also tallies those albedos from the walk, workers.fold.reweight), on `processes` worker
     processes or `threads` threads; yields the tallies in item order with at most `window`
-    (default two per worker) running or waiting ahead (:func:`workers.pool.in_order`).
+    (default two per worker) running or waiting ahead (:func:`workers.run.pool.in_order`).
     `workers_hint`, if given, caps the workers (no more than there are items)."""
     import torch
 
@@ -123,18 +123,18 @@ def simulate_sweep(spec, out_dir: str, *, filesystem=None, progress=None, thread
     """Run every medium of the sweep `spec` in task order and write the job's
     tables into `out_dir`; returns the file names.
 
-    Tallies are folded as they arrive in task order (:class:`workers.sweep.JobFold`), each
+    Tallies are folded as they arrive in task order (:class:`workers.fold.sweep.JobFold`), each
     finished medium's tables go to a part under ``out_dir/.parts`` and the parts are streamed
     into the tables at the end, so memory is one medium's accumulator and tables plus the shards
     in flight.  A medium stops early when `stop_rule` holds (default: the spec's target error,
-    :func:`workers.sweep.target_rule`); its shards past the stop are skipped.
+    :func:`workers.fold.sweep.target_rule`); its shards past the stop are skipped.
     """
     import functools
     from collections import deque
 
     import pyarrow.fs as pafs
 
-    from .sweep import JobFold, group_walk, read_part, target_rule, write_part, write_sweep_tables
+    from workers.fold.sweep import JobFold, group_walk, read_part, target_rule, write_part, write_sweep_tables
 
     fs = filesystem or pafs.LocalFileSystem()
     fold = JobFold(spec, stop_rule if stop_rule is not None else target_rule(spec))
@@ -165,7 +165,7 @@ def simulate_sweep(spec, out_dir: str, *, filesystem=None, progress=None, thread
 
 
 def format_summary(doc: dict, max_rows: int = 60) -> str:
-    """Human-readable table of a summary document (see workers.output.summary); a sweep's rows
+    """Human-readable table of a summary document (see workers.fold.output.summary); a sweep's rows
     carry the medium's coordinates; beyond `max_rows` lines the rest is counted, not shown."""
     results = doc["results"]
     sweep = "media" in doc["run"]
@@ -262,7 +262,7 @@ def load_with_overrides(path: str, photons: int | None, seed: int | None):
 
 
 def main(args: argparse.Namespace) -> int:
-    from .output import summary, write_tables
+    from workers.fold.output import summary, write_tables
 
     try:
         spec = load_with_overrides(args.spec, args.photons, args.seed)

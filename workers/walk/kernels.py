@@ -278,7 +278,7 @@ def compile_kernel(fn: Callable, name: str, constants: Any = None) -> Callable:
     the key.  The artifact specialises on those shapes, so callers pass fixed-size chunks.
 
     Arguments may be tensors, and lists and dataclasses of them, passed whole (a structure of
-    arrays such as :class:`workers.walk.Lanes` or a chunk of views into one): the guards read
+    arrays such as :class:`workers.walk.walk.Lanes` or a chunk of views into one): the guards read
     their fields, no pytree registration is needed, and in-place writes reach the viewed
     storage.  Results are tensors or tuples of them: a loaded artifact would rebuild a dataclass
     result by its class name, which ``load_compiled_function`` cannot resolve.

@@ -2,7 +2,7 @@
 
 Importing :mod:`workers` changes nothing outside it.  :func:`init_engine` makes the two
 process-wide changes the compiled walk relies on for its speed; it is idempotent and called by
-:func:`workers.shard.run_shard` (every walk) and by :mod:`workers.kernels` before it compiles
+:func:`workers.run.shard.run_shard` (every walk) and by :mod:`workers.walk.kernels` before it compiles
 or loads a kernel, so nothing else needs to call it:
 
 - compiled CPU kernels run without the GIL (:func:`_release_gil_in_compiled_kernels`), so shards

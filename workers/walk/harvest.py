@@ -13,8 +13,8 @@ the tables' edges are:
 
 - radial: r = sqrt(x^2 + y^2) / sigma_t in mm, against the configuration's row of edges by a
   branchless binary search (:func:`count_le`);
-- cos_o: uniform bins, :func:`workers.binning.uniform_index`; theta_s, phi_o: azimuth bins
-  centred on 0, :func:`workers.binning.azimuth_index`.
+- cos_o: uniform bins, :func:`workers.walk.binning.uniform_index`; theta_s, phi_o: azimuth bins
+  centred on 0, :func:`workers.walk.binning.azimuth_index`.
 
 S of an exit, w / cos_o, is unbiased for the bin's BSSRDF averaged over dA d(omega) (the flux
 through a bin is the integral of L cos_o, so the integral of L is the sum of w / cos_o), and has
@@ -31,7 +31,7 @@ checks S per (r, cos_o) bin, the grazing bin at eta = 1 included, against the qu
 
 At finite N that error bar is honest for the difference of two runs but not for one run against
 the truth, so the tables flag these bins (bins.parquet ``S_infinite_variance`` = 1, ``S_stderr``
-NaN: workers.output.s_infinite_variance).  Measured (eta = 1, g = 0.9, albedo 0.9, roulette, 6e4 photons, ~280 grazing exits per
+NaN: workers.fold.output.s_infinite_variance).  Measured (eta = 1, g = 0.9, albedo 0.9, roulette, 6e4 photons, ~280 grazing exits per
 (r, phi_o) bin, 20 seeds): two-seed z of the grazing S have unit spread (tests/workers/
 test_walk_errors.py passes), while t of one run against the mean of the other 19 has mean -0.20,
 variance 1.26 and skew -0.56 (G of the same bins: -0.04, 0.85, +0.17): a run that misses the rare
@@ -157,7 +157,7 @@ def finish_and_refill(lanes: Lanes, table: ConfigTable, launch: torch.Tensor, ba
     For each lane, before the refill: key = batch * n_cfg + cfg of a finished photon (EXITED,
     ABSORBED or TRUNCATED), n_batches * n_cfg (a spare slot) for any other lane; its absorbed
     weight and truncated weight (float64, 0 for lanes not finished).  Then the refill of
-    :func:`workers.walk.refill_lanes` with `launch`.  Returns (key, absorbed, truncated, n_free,
+    :func:`workers.walk.walk.refill_lanes` with `launch`.  Returns (key, absorbed, truncated, n_free,
     steps): n_free the lanes that were not running (the refill launched min(n_free, launches
     left) photons), steps the interaction steps of the finished photons (int64 scalars).  Only
     integer reductions: the float sums are left to the caller's ordered bincount, so results do

@@ -1,7 +1,7 @@
 """The hybrid estimator (the default): single scattering by connections from the first vertex,
 multiple scattering by the exit tally.
 
-Why: the connection estimator (:mod:`workers.connections`) wins single scattering by one to two
+Why: the connection estimator (:mod:`workers.walk.connections`) wins single scattering by one to two
 orders of magnitude in efficiency (1 / (variance x CPU s)) and alone resolves it far from the
 entry point, but connecting *every* vertex to *every* bin costs ~100 exit-walk steps per vertex
 and loses multiple scattering by 17-65x (BENCHMARKS.md).  Single scattering only ever comes from
@@ -13,11 +13,11 @@ the first vertex, so:
       f(x_o) = w_0 a p(u_0 . w21) exp(-d) T21(cos_in) cos_in / d^2,
   is estimated by multiple importance sampling (balance heuristic, one sample per technique) of
   * the *phase* technique: the walk's own first scattering direction, followed to the surface,
-    density per area q_p = p cos_in / d^2 (as in workers.connections);
+    density per area q_p = p cos_in / d^2 (as in workers.walk.connections);
   * K_SAMPLES *stratified uniform* techniques: the spatial bins inside r_max, in flat order
     r * n_theta + theta, are cut into K contiguous strata; stratum j picks one bin uniformly and a
     point uniform in (r, theta) of it (theta_s bin k is [(k - 1/2) h, (k + 1/2) h), centred on
-    +x: workers.conventions): density q_j = 1 / (n_j r dr dtheta) in its n_j bins.
+    +x: workers.walk.conventions): density q_j = 1 / (n_j r dr dtheta) in its n_j bins.
   A point x in stratum j gets the weight q/(q_p + q_j) for the technique q that drew it (only
   stratum j's density is nonzero there), so every contribution is bounded by w_0 a, as in the
   full connection estimator, at O(K) cost per photon instead of O(bins) per vertex.
@@ -26,13 +26,13 @@ the first vertex, so:
 
 Both parts are unbiased for their component; total = single + multiple.  No weight depends on
 the run's results.  S of a connection sample uses T cos_in / cos_o
-(:func:`workers.optics.transmittance_cos_ratio`), bounded also where cos_o -> 0.
+(:func:`workers.walk.optics.transmittance_cos_ratio`), bounded also where cos_o -> 0.
 
 Random numbers: the first vertex is recomputed from the photon's walk stream (draw 0: free path
 and scattering direction, so the phase sample *is* the walk's direction) and the uniform samples
 use the connection purpose of draw 0, block PURPOSE_CONNECT + j for stratum j.  The samples are
 computed when a photon finishes, from its photon index and configuration alone, together with its
-exit, so its contributions are squared per photon (workers.tally).
+exit, so its contributions are squared per photon (workers.fold.tally).
 """
 
 from __future__ import annotations
@@ -182,9 +182,9 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
 
 @dataclass(frozen=True)
 class EntryLayout:
-    """Histogram geometry of the hybrid's entries (workers.tally): n_sp = (n_r + 1) n_theta
+    """Histogram geometry of the hybrid's entries (workers.fold.tally): n_sp = (n_r + 1) n_theta
     spatial and n_dir = n_cos n_phi direction bins; square_offsets: where the squared sums of
-    bins_G, bins_S, radial_G and Rd start in one histogram (workers.tally._Layout)."""
+    bins_G, bins_S, radial_G and Rd start in one histogram (workers.fold.tally._Layout)."""
 
     n_sp: int
     n_dir: int
@@ -201,7 +201,7 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     (square_key, square_weight) [8, P, E]: for bins_G, bins_S, radial_G, Rd, each for the entry's
     component and for total, the key into the squares histogram and x (x + 2 sum of the later
     entries of the photon with the same key): summed per key, the sum over photons of the
-    photon's squared contribution (workers.tally.photon_moments, here fused into the kernel).
+    photon's squared contribution (workers.fold.tally.photon_moments, here fused into the kernel).
     """
     cfg = lanes.cfg[idx]
     spatial, direction, g, s = first_vertex_samples(lanes.photon[idx], cfg, geo)

@@ -1,6 +1,6 @@
 """Pure physics kernels over tensors: free paths, Henyey-Greenstein, Fresnel, refraction.
 
-Directions and cosines follow :mod:`workers.conventions`.  Every function takes tensors and
+Directions and cosines follow :mod:`workers.walk.conventions`.  Every function takes tensors and
 explicit uniforms, works elementwise (any shape, float32 or float64), branches with masks, and
 never mutates its inputs.  Each is tested against its pdf or a closed form in tests/.
 """
@@ -30,7 +30,7 @@ INV_4PI = 1.0 / (4.0 * math.pi)
 def sample_exponential(u: torch.Tensor) -> torch.Tensor:
     """Optical free path s = -ln(u) for u in (0, 1]; pdf exp(-s) on [0, inf).
 
-    Divide by sigma_t for a length in mm.  u must exclude 0 (use :func:`workers.rng.uniform_open`).
+    Divide by sigma_t for a length in mm.  u must exclude 0 (use :func:`workers.walk.rng.uniform_open`).
     """
     return -torch.log(u)
 

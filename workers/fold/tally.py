@@ -125,7 +125,7 @@ class PhotonAccumulator:
             acc[row] += np.bincount(flat, weights=w, minlength=acc.shape[1])
 
     def add_photons(self, estimator: str, flat2: np.ndarray, g: np.ndarray, s: np.ndarray, square_key: np.ndarray, square_weight: np.ndarray) -> None:
-        """Entries of several per photon (workers.hybrid.photon_entries): flat2 [cfg, comp (0/1),
+        """Entries of several per photon (workers.walk.hybrid.photon_entries): flat2 [cfg, comp (0/1),
         spatial, direction], G and S contributions (0 for an absent entry), and the keys and
         weights whose sums per key are the per-photon squares of every level (square_parts
         regions; see :func:`photon_moments`)."""

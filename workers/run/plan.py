@@ -2,7 +2,7 @@
 
 Configurations (incidence angle x channel) and their constants, the bin layout, the lane and
 chunk sizes, the walk's constants and the tables the kernels read (:class:`ShardPlan`); the
-mutable run that follows the plan is :mod:`workers.shard`.
+mutable run that follows the plan is :mod:`workers.run.shard`.
 """
 
 from __future__ import annotations
@@ -16,14 +16,14 @@ import torch
 
 from schema import SimulationSpec
 
-from .binning import BinLayout
-from .connections import ConnectionGeometry
-from .harvest import ExitBins
-from .hybrid import K_SAMPLES, EntryLayout, FirstVertexGeometry
-from .optics import fresnel_dielectric, incident_refracted_direction
-from .rng import stream_key, to_i32
-from .tally import TallyLayout
-from .walk import ConfigTable, WalkParams, compile_enabled
+from workers.walk.binning import BinLayout
+from workers.walk.connections import ConnectionGeometry
+from workers.walk.harvest import ExitBins
+from workers.walk.hybrid import K_SAMPLES, EntryLayout, FirstVertexGeometry
+from workers.walk.optics import fresnel_dielectric, incident_refracted_direction
+from workers.walk.rng import stream_key, to_i32
+from workers.fold.tally import TallyLayout
+from workers.walk.walk import ConfigTable, WalkParams, compile_enabled
 
 __all__ = ["ShardPlan", "Configs", "build_configs", "bin_layout", "chunk_count", "CHUNK", "VERTEX_CHUNK", "EXIT_BLOCK", "HARVEST_DIVISOR"]
 

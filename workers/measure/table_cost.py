@@ -1,4 +1,4 @@
-"""`python -m workers.table_cost`: what a renderer's table costs, measured and projected.
+"""`python -m workers.measure.table_cost`: what a renderer's table costs, measured and projected.
 
 The product's main use is a pbrt table of one material family: one g, one eta, pbrt's albedos
 (the 99 non-zero ones of ``{"count": 100, "spacing": "pbrt"}``) x 64 radial bins centred on pbrt's
@@ -69,8 +69,8 @@ def table_spec(albedos, g: float, eta: float, photons: int, estimator: str, walk
 
 def measure(spec: SimulationSpec, progress=None) -> tuple[list, list[float]]:
     """Run every task on this thread; (Results in medium order, CPU seconds per walk group)."""
-    from .simulate import run_tasks
-    from .sweep import JobFold, group_walk
+    from workers.run.simulate import run_tasks
+    from workers.fold.sweep import JobFold, group_walk
 
     def items():
         for t in range(spec.task_count()):
@@ -160,7 +160,7 @@ def project(spec: SimulationSpec, results, cpu: list[float], r_min=0.001, r_max=
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m workers.table_cost", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m workers.measure.table_cost", description=__doc__.split("\n\n")[0])
     p.add_argument("--g", type=float, default=0.0)
     p.add_argument("--eta", type=float, default=1.33)
     p.add_argument("--albedos", default="pbrt:100", help="comma list, or pbrt:N (pbrt's N albedos without 0; default pbrt:100)")

@@ -1,4 +1,4 @@
-"""`bssrdf bench` / `python -m workers.bench`: throughput of the walk.
+"""`bssrdf bench` / `python -m workers.measure.bench`: throughput of the walk.
 
 For the benchmark media of the engine issue, at normal incidence, each estimator alone (hybrid,
 the default; exits; connections):
@@ -40,14 +40,14 @@ def _spec(medium: str, estimator: str, photons: int, shards: int = 1) -> Simulat
 
 def bench_one(medium: str, estimator: str, photons: int, threads: int = 1, repeat: int = 3) -> dict:
     """Run `threads` shards of `photons` photons each concurrently, one worker process per shard
-    (:class:`workers.pool.ShardPool`, as `bssrdf simulate` does), after every process has warmed up
+    (:class:`workers.run.pool.ShardPool`, as `bssrdf simulate` does), after every process has warmed up
     (compiled) on a small run; `repeat` times, reporting the median run (by wall time) and every
     run's photons/s (shared machines vary by tens of percent from run to run).
 
     Rates per core divide by `threads`; CPU time is the shards' own (thread CPU time in their
     processes), so steps per CPU-second show how much of each core the walk gets.
     """
-    from .pool import ShardPool  # torch: not needed to build the command-line parser
+    from workers.run.pool import ShardPool  # torch: not needed to build the command-line parser
 
     warm = _spec(medium, estimator, max(8, photons // 50), 1)
     spec = _spec(medium, estimator, photons * threads, threads)
@@ -124,6 +124,6 @@ def main(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(prog="python -m workers.bench", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m workers.measure.bench", description=__doc__)
     _arguments(parser)
     sys.exit(main(parser.parse_args()))

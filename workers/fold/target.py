@@ -10,7 +10,7 @@ are reproducible bit for bit whatever the number of workers or the order shards 
 
 API (for every caller, `bssrdf simulate` and the job service alike)::
 
-    status = target_status(result, spec.target)   # result: workers.merge.Result of shards 0..K-1
+    status = target_status(result, spec.target)   # result: workers.fold.merge.Result of shards 0..K-1
     status.reached        # bool: every check met
     status.photons        # photons per configuration in the merged statistics
     status.worst          # the check furthest from its limit (largest rel_stderr / limit)
@@ -23,7 +23,7 @@ r_hi <= r_max_mm against ``target.radial.rel_stderr``.  rel_stderr = stderr / |e
 estimate of 0 or a NaN standard error (no contributing event) never meets its limit.
 
 A standard error counts only when it rests on at least MIN_UNITS = 30 independent units, i.e.
-``dof = units - 1 >= MIN_DOF = 29`` (workers.tally: photons for the exit tally and the hybrid,
+``dof = units - 1 >= MIN_DOF = 29`` (workers.fold.tally: photons for the exit tally and the hybrid,
 batches for connections).  The estimated error of a mean from k units has k - 1 degrees of
 freedom, and its own relative error is about 1 / sqrt(2 (k - 1)) (the spread of a chi-square
 with k - 1 dof; Student's t): 41 % on the first shard of a run with 4 batches per shard (3 dof),

@@ -11,7 +11,7 @@ Three models renderers use in place of a measured table, drawn beside ours in th
   (Christensen and Burley 2015, "Approximate Reflectance Profiles for Efficient Subsurface
   Scattering", Pixar technical memo 15-04).
 
-Conventions (:mod:`workers.conventions`): the medium fills z < 0, light enters at the origin
+Conventions (:mod:`workers.walk.conventions`): the medium fills z < 0, light enters at the origin
 along -z (normal incidence), lengths in mm and coefficients in 1/mm (pass sigma_t = 1 for optical
 units). Every profile here is **per unit power that entered the medium** (the entry Fresnel
 factor 1 - R_spec excluded, as in pbrt's table); multiply by 1 - R_spec to compare with the
@@ -50,7 +50,7 @@ _GL_S, _GL_W = 0.5 * (_GL_S + 1.0), 0.5 * _GL_W  # Gauss-Legendre on [0, 1]
 
 def fresnel_reflectance(cos_i, eta: float) -> np.ndarray:
     """Unpolarised Fresnel reflectance of a smooth dielectric, numpy (the torch-free twin of
-    :func:`workers.optics.fresnel_dielectric`, same formula and arguments).
+    :func:`workers.walk.optics.fresnel_dielectric`, same formula and arguments).
 
     cos_i in [0, 1] on the incident side, eta = n_transmitted / n_incident; with
     sin_t^2 = (1 - cos_i^2) / eta^2, r_s = (cos_i - eta cos_t) / (cos_i + eta cos_t),
@@ -89,7 +89,7 @@ def fresnel_moment(i: int, eta: float) -> float:
 
 def hg_phase(cos_theta, g: float) -> np.ndarray:
     """Henyey-Greenstein phase function per steradian, (1 - g^2) / (4 pi (1 + g^2 - 2 g cos)^1.5),
-    cos between the directions of travel before and after scattering (as :func:`workers.optics.hg_pdf`)."""
+    cos between the directions of travel before and after scattering (as :func:`workers.walk.optics.hg_pdf`)."""
     denom = 1.0 + g * g - 2.0 * g * np.asarray(cos_theta, dtype=np.float64)
     return _INV_4PI * (1.0 - g * g) / (denom * np.sqrt(denom))
 

@@ -1,4 +1,4 @@
-"""`python -m workers.efficiency`: efficiency of each estimator per spatial bin.
+"""`python -m workers.measure.efficiency`: efficiency of each estimator per spatial bin.
 
 Efficiency = 1 / (variance x CPU seconds): the inverse of the CPU time needed for a unit
 variance.  Each estimator (hybrid, the default; exits; connections) runs alone on the same medium
@@ -33,7 +33,7 @@ import torch
 from schema import ESTIMATORS, SimulationSpec
 
 from .bench import MEDIA
-from .simulate import simulate
+from workers.run.simulate import simulate
 
 __all__ = ["efficiency", "table", "worst_hybrid_ratio", "main"]
 
@@ -136,7 +136,7 @@ def table(rows: list[dict], min_events: int) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m workers.efficiency", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m workers.measure.efficiency", description=__doc__)
     p.add_argument("--medium", default="M1", choices=sorted(MEDIA))
     p.add_argument("--incidence", type=float, default=0.0, help="incidence angle in degrees (default 0)")
     p.add_argument("--photons-exits", type=int, default=200_000)

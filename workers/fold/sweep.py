@@ -3,10 +3,10 @@
 A job is G walk groups x S shards, task t = k S + s (:mod:`schema.media`, :mod:`schema.groups`).
 Task t runs shard s of the group leader's own single-medium spec (:func:`run_task`), so it has one
 eta and one compiled walk kernel, and tallies the group's other albedos from the same walk
-(:mod:`workers.reweight`).  With independent walks every group is one medium and a sweep's entry
+(:mod:`workers.fold.reweight`).  With independent walks every group is one medium and a sweep's entry
 is the single-medium job bit for bit; with shared walks that holds for each group's leader.
 :class:`JobFold` folds the tallies in task order, one group at a time (a
-:class:`workers.merge.Fold` per member): memory is one accumulator per member of the group and
+:class:`workers.fold.merge.Fold` per member): memory is one accumulator per member of the group and
 one shard whatever the shard and medium counts. A finished medium's tables are written as a *part* (:func:`write_part`),
 and the parts are streamed into the job's tables at the end (:func:`write_sweep_tables`):
 a medium per row group, summary.json row by row.
@@ -31,7 +31,7 @@ from schema.version import code_version
 from .finite import check_finite
 from .merge import Fold, MergeError, Result
 from .output import NORMALISATION, RNG_FACT, TableWriter, bins_table, engine_fact, radial_table, summary_table
-from .shard import run_shard
+from workers.run.shard import run_shard
 from .reweight import member_prefix
 from .tally import ShardTally
 from .target import target_status
@@ -82,7 +82,7 @@ def split_group_tally(tally: ShardTally, n_members: int) -> list[ShardTally]:
 
 
 def target_rule(spec: SimulationSpec) -> StopRule | None:
-    """The early-stop rule of the spec's target error (:func:`workers.target.target_status` on
+    """The early-stop rule of the spec's target error (:func:`workers.fold.target.target_status` on
     the merge of a medium's first K shards), or None without a target (every shard runs).
     The rule records the status on the result it judged (``result.target``)."""
     if spec.target is None:
@@ -244,7 +244,7 @@ def walk_facts(spec: SimulationSpec) -> dict:
 
 def write_part(result: Result, directory: str, filesystem: pafs.FileSystem) -> list[str]:
     """One medium's tables as Parquet files in ``directory`` (no run metadata); the file names.
-    Refused (:class:`workers.finite.NonFiniteResult`) if one holds a non-finite number."""
+    Refused (:class:`workers.fold.finite.NonFiniteResult`) if one holds a non-finite number."""
     tables = (radial_table(result), bins_table(result), summary_table(result))
     for name, table in zip(("radial", "bins", "summary"), tables):
         check_finite(table, name)

@@ -4,8 +4,8 @@ A fixed array of *lanes* holds photons in flight.  :func:`walk_step` advances ev
 by one interaction (fly, hit the boundary or collide, Fresnel, absorb / roulette, scatter) with
 masks and no Python branching on values, so torch.compile fuses it into a few passes over memory;
 finished lanes keep their final state until the shard runner harvests them and refills the lane
-with the next photon (:func:`refill_lanes`, run by :func:`workers.harvest.finish_and_refill`).  All lengths are optical (sigma_t = 1, see
-:mod:`workers.conventions`), so one walk serves every channel and incidence angle at once.
+with the next photon (:func:`refill_lanes`, run by :func:`workers.walk.harvest.finish_and_refill`).  All lengths are optical (sigma_t = 1, see
+:mod:`workers.walk.conventions`), so one walk serves every channel and incidence angle at once.
 
 Random numbers come from Philox keyed by (seed, configuration) with counter (photon, step): a
 photon's path does not depend on its lane, the lane count or the thread count.
@@ -72,7 +72,7 @@ class Lanes:
     status: torch.Tensor  # int32 status code
     albedo: torch.Tensor  # float32 per-lane copy of the configuration's albedo
     g: torch.Tensor  # float32 per-lane copy of the configuration's HG g
-    k0: torch.Tensor  # int32 Philox key words of the configuration (bit patterns, workers.rng)
+    k0: torch.Tensor  # int32 Philox key words of the configuration (bit patterns, workers.walk.rng)
     k1: torch.Tensor
     c_lo: torch.Tensor  # int32 Philox counter words 0 and 1: the photon index, low and high half
     c_hi: torch.Tensor
@@ -105,7 +105,7 @@ class Lanes:
 
 @dataclass(frozen=True)
 class ConfigTable:
-    """Per-configuration constants as tensors indexed by configuration (built by workers.plan)."""
+    """Per-configuration constants as tensors indexed by configuration (built by workers.run.plan)."""
 
     albedo: torch.Tensor  # float32
     g: torch.Tensor  # float32
@@ -198,7 +198,7 @@ def _step_inplace(lanes: Lanes, p: WalkParams, n_steps: int, want_vertices: bool
     Returns (counts, vertex): counts = int64 [running, finished] lanes after the steps (finished =
     EXITED, ABSORBED or TRUNCATED, waiting for harvest); vertex = the last step's vertex data
     (collided, ux_in, uy_in, uz_in, w_in; see :func:`walk_step`) if want_vertices, else None.
-    A tuple, not a dataclass: see :func:`workers.kernels.compile_kernel` on results.
+    A tuple, not a dataclass: see :func:`workers.walk.kernels.compile_kernel` on results.
     """
     vertex = None
     cur = lanes

@@ -28,7 +28,7 @@ Angles of a bin
 Azimuth bins are centred on the plane of incidence
     With n bins of width h = 2 pi / n, theta_s bin k and phi_o bin k are
     [(k - 1/2) h, (k + 1/2) h) modulo 2 pi; the stored edges run from -h/2 to 2 pi - h/2
-    (schema.bins.azimuth_edges, workers.binning.azimuth_index).  Bin 0 holds theta_s = 0
+    (schema.bins.azimuth_edges, workers.walk.binning.azimuth_index).  Bin 0 holds theta_s = 0
     (straight ahead along +x) and phi_o = 0 (leaving radially); for even n bin n/2 holds pi.
     Why: the problem is mirror-symmetric about the plane of incidence (y -> -y maps theta_s to
     -theta_s and phi_o to -phi_o), so S(r, theta_s, cos, phi_o) = S(r, -theta_s, cos, -phi_o),
@@ -41,15 +41,15 @@ Grazing bins at eta = 1
     The exit tally scores S = w / cos(theta_o); at eta = 1 its second moment is infinite in the
     lowest cos(theta_o) bin, so those rows of bins.parquet (exits: every component; hybrid:
     multiple and total) carry S_infinite_variance = 1 and a NaN S_stderr; S itself is unbiased
-    (workers.output.s_infinite_variance, workers.harvest).
+    (workers.fold.output.s_infinite_variance, workers.walk.harvest).
 
 Components
     0 = ``single`` (exactly one scattering event before leaving), 1 = ``multiple`` (two or more);
     ``total`` is their sum, formed per photon (or per batch) before squaring, so its error bar
-    keeps the covariance (workers.tally).
+    keeps the covariance (workers.fold.tally).
 
 Random numbers
-    Philox-4x32-10 (:mod:`workers.rng`), counter (photon low, photon high, draw, purpose), key from
+    Philox-4x32-10 (:mod:`workers.walk.rng`), counter (photon low, photon high, draw, purpose), key from
     (seed, configuration).  Purpose 0 is the walk step (one block of four uniforms per step:
     free path, decision, cos(theta), phi); purposes >= 1 are the connection samples at a vertex.
 """

@@ -28,7 +28,7 @@ from schema import SimulationSpec, parse_spec
 
 from .cores import default_workers
 from .shard import run_shard
-from .tally import ShardTally
+from workers.fold.tally import ShardTally
 
 __all__ = ["ShardPool", "default_workers", "in_order"]
 

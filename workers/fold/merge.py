@@ -11,8 +11,8 @@ import numpy as np
 
 from schema import SimulationSpec
 
-from .binning import BinLayout
-from .plan import Configs, bin_layout, build_configs
+from workers.walk.binning import BinLayout
+from workers.run.plan import Configs, bin_layout, build_configs
 from .tally import ShardTally, units_name
 
 __all__ = ["Result", "Fold", "merge", "MergeError"]
@@ -24,7 +24,7 @@ class MergeError(ValueError):
 
 @dataclass
 class Result:
-    """Merged statistics of a whole run; see workers.tally for the definitions.
+    """Merged statistics of a whole run; see workers.fold.tally for the definitions.
 
     mean(name) is the estimate per launched photon (per unit incident power, since every photon
     carries incident power 1 before the entry Fresnel split) and stderr(name) its standard error.
@@ -38,7 +38,7 @@ class Result:
     n_sum: int
     shard_info: list[dict] = field(default_factory=list)
     medium_index: int = 0  # index of the medium in its job (schema.media); 0 for a single medium
-    target: object | None = None  # workers.target.TargetStatus of a run to a target error
+    target: object | None = None  # workers.fold.target.TargetStatus of a run to a target error
 
     @property
     def estimators(self) -> list[str]:
@@ -48,7 +48,7 @@ class Result:
         return self.stats[name][0] / self.n_sum
 
     def units(self, name: str) -> tuple[int, int]:
-        """(K, NN) of the units quantity `name`'s standard error comes from (workers.tally)."""
+        """(K, NN) of the units quantity `name`'s standard error comes from (workers.fold.tally)."""
         k, nn = self.counts[units_name(name.split("/")[0])]
         return int(k), int(nn)
 

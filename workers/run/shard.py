@@ -4,7 +4,7 @@ The shard's photons [start, stop) of every configuration (incidence angle x chan
 launched in a fixed order, photon-major: (p, c) for p in range(start, stop) for c in configs.
 Finished lanes are harvested after every call of the step function and refilled in lane order,
 so the schedule, and with it every float64 sum, is fixed by the spec alone.  What is fixed
-before the run starts is its plan (:mod:`workers.plan`).
+before the run starts is its plan (:mod:`workers.run.plan`).
 """
 
 from __future__ import annotations
@@ -19,14 +19,14 @@ import torch
 
 from schema import SimulationSpec
 
-from .connections import Vertices, VertexBuffer, connection_function
-from .engine import init_engine
-from .harvest import exit_function, finish_function
-from .hybrid import entries_function
-from .reweight import MemberTallies, member_prefix
+from workers.walk.connections import Vertices, VertexBuffer, connection_function
+from workers.walk.engine import init_engine
+from workers.walk.harvest import exit_function, finish_function
+from workers.walk.hybrid import entries_function
+from workers.fold.reweight import MemberTallies, member_prefix
 from .plan import EXIT_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
-from .tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
-from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
+from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
+from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
 __all__ = ["run_shard"]
 
@@ -35,10 +35,10 @@ __all__ = ["run_shard"]
 class _Kernels:
     """The (compiled or eager) functions a shard run calls, chosen once from its plan."""
 
-    step: Callable  # steps a chunk of lanes in place (workers.walk.step_function)
-    finish: Callable  # records finished lanes and refills them (workers.harvest.finish_and_refill)
-    exits: Callable  # exit events' bins (workers.harvest.exit_bins)
-    entries: Callable  # the hybrid's entries per photon (workers.hybrid.photon_entries)
+    step: Callable  # steps a chunk of lanes in place (workers.walk.walk.step_function)
+    finish: Callable  # records finished lanes and refills them (workers.walk.harvest.finish_and_refill)
+    exits: Callable  # exit events' bins (workers.walk.harvest.exit_bins)
+    entries: Callable  # the hybrid's entries per photon (workers.walk.hybrid.photon_entries)
     connect: Callable  # both connection techniques for a chunk of vertices
 
     @classmethod
@@ -73,7 +73,7 @@ class _Runner:
         ranges = plan.spec.batch_photon_ranges(plan.shard_index)
         self.acc = BatchAccumulator(batch_estimators, plan.cfgs.n, plan.layout.shape, ranges)
         self.photons = PhotonAccumulator(photon_estimators, plan.cfgs.n, plan.layout.shape)
-        self.members = None  # a shared walk's other albedos (workers.reweight)
+        self.members = None  # a shared walk's other albedos (workers.fold.reweight)
         if members:
             walked = set(plan.cfgs.albedo.tolist())
             if len(walked) != 1 or batch_estimators:
@@ -285,7 +285,7 @@ def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int
     """Simulate shard `shard_index` of `spec`; a pure function of its inputs.
 
     members: further albedos (each <= the spec's, one-channel medium, exits or hybrid) tallied
-    from the same walk by reweighting (:mod:`workers.reweight`); member j's quantities carry
+    from the same walk by reweighting (:mod:`workers.fold.reweight`); member j's quantities carry
     the prefix ``member_prefix(j)`` in the tally, the spec's own are unchanged.
 
     progress, if given, is called with the number of photons (all configurations) finished since

@@ -77,11 +77,11 @@ def s_infinite_variance(estimator: str, component: str, eta: float, cos_lo: floa
 
     The exit tally scores S = w / cos_o.  At eta = 1 nothing stops photons leaving near grazing
     (the radiance is finite there), so exits have density ~ cos_o as cos_o -> 0 and in the bin
-    [0, c_1) E[(w / cos_o)^2] ~ int_0 dc / c diverges (workers/harvest.py).  For eta > 1 the
+    [0, c_1) E[(w / cos_o)^2] ~ int_0 dc / c diverges (workers/walk/harvest.py).  For eta > 1 the
     transmittance vanishes like cos_o (density ~ cos_o^2: finite), for eta < 1 refraction keeps
     cos_o >= sqrt(1 - eta^2) > 0, and every bin above the lowest has cos_o >= c_1 > 0.  The exit
     tally scores every component of ``exits`` and the ``multiple`` part (so ``total``) of the
-    hybrid; connection samples score T cos_in / cos_o, bounded (workers.connections).
+    hybrid; connection samples score T cos_in / cos_o, bounded (workers.walk.connections).
     """
     exit_scored = estimator == "exits" or (estimator == "hybrid" and component != "single")
     return exit_scored and eta == 1.0 and cos_lo == 0.0
@@ -192,7 +192,7 @@ def summary_head(spec, run: dict, **extra) -> dict:
 
 
 def target_entry(result: Result) -> dict:
-    """{"target": status} of a run to a target error (workers.target.TargetStatus: reached,
+    """{"target": status} of a run to a target error (workers.fold.target.TargetStatus: reached,
     photons, worst check), else {}."""
     return {} if result.target is None else {"target": result.target.as_dict()}
 
@@ -228,7 +228,7 @@ class TableWriter:
 
     def add_tables(self, radial: pa.Table, bins: pa.Table, summary: pa.Table) -> None:
         """Append one medium's tables, already built (e.g. read back from a part file); refused
-        (:class:`workers.finite.NonFiniteResult`) if one holds a non-finite number."""
+        (:class:`workers.fold.finite.NonFiniteResult`) if one holds a non-finite number."""
         tables = (("radial", radial), ("bins", bins), ("summary", summary))
         for name, table in tables:
             check_finite(table, name)

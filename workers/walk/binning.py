@@ -1,6 +1,6 @@
 """Bin geometry and bin lookup: annular sectors on the surface, equal-solid-angle directions.
 
-Conventions in :mod:`workers.conventions`.  A spatial bin is r in [r_lo, r_hi) x theta_s in
+Conventions in :mod:`workers.walk.conventions`.  A spatial bin is r in [r_lo, r_hi) x theta_s in
 [lo, hi) with area A = (r_hi^2 - r_lo^2)/2 * dtheta_s; a directional bin is uniform in cos(theta_o)
 over [0, 1] and in phi_o over the full turn, so every one has solid angle Omega = dcos * dphi =
 2 pi / (n_cos * n_phi).  Both azimuths are binned centred on the plane of incidence
@@ -112,7 +112,7 @@ class BinLayout:
     radial_mm: float64 [n_channels, n_r + 1]; theta_s, cos_o, phi_o: float64 1-D edge arrays
     (theta_s and phi_o centred on 0: :func:`schema.bins.azimuth_edges`).
     The walk's lookups are :func:`uniform_index`, :func:`azimuth_index` and
-    :mod:`workers.harvest`; the searched
+    :mod:`workers.walk.harvest`; the searched
     reference they are tested against is in tests/reference/binning.py.
     """
 
