@@ -19,7 +19,7 @@ SUBCOMMANDS = (
     "workers.run.simulate",  # simulate: in-process measurement
     "workers.measure.bench",  # bench: walk throughput
     "service.runner",  # run: local job service end to end
-    "service.worker",  # worker: claim, run, commit
+    "service.worker_command",  # worker: claim, run, commit
     "service.serve",  # serve: the HTTP API
     "service.client",  # submit, status, datasets
     "service.export",  # export: a version's export as files

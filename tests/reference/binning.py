@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from workers.walk.binning import BinLayout
+from workers.fold.configs import BinLayout
 
 __all__ = ["edge_index", "azimuth_edge_index", "SearchedLookup", "searched"]
 

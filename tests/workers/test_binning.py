@@ -16,7 +16,8 @@ import torch
 from schema import azimuth_edges, uniform_edges
 from tests.support.stats import assert_chi2
 from tests.reference.binning import azimuth_edge_index, edge_index, searched
-from workers.walk.binning import TWO_PI, BinLayout, _edge_function, azimuth_index, outgoing_azimuth, uniform_index, wrap_angle
+from workers.fold.configs import BinLayout
+from workers.walk.binning import TWO_PI, _edge_function, azimuth_index, outgoing_azimuth, uniform_index, wrap_angle
 
 # Two channels with different radial edges (mm), same bin count.
 RADIAL = np.array(

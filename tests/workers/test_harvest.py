@@ -17,7 +17,8 @@ import torch
 
 from schema import azimuth_edges, uniform_edges
 from tests.reference.binning import searched
-from workers.walk.binning import BinLayout, outgoing_azimuth
+from workers.fold.configs import BinLayout
+from workers.walk.binning import outgoing_azimuth
 from workers.walk.harvest import ExitBins, batch_index, count_le, exit_bins
 from workers.walk.optics import refracted_cos
 from workers.walk.walk import EMPTY, EXITED, Lanes
@@ -150,7 +151,8 @@ def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
     run out, the rest become EMPTY, running lanes are untouched."""
     from workers.measure.bench import _spec
     from workers.walk.harvest import finish_and_refill
-    from workers.run.plan import build_configs
+    from workers.fold.configs import build_configs
+    from workers.run.plan import config_table
     from workers.walk.walk import RUNNING, TRUNCATED
 
     bins, _, _ = _bins()
@@ -161,7 +163,8 @@ def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
     st = before["status"]
     done = (st != RUNNING) & (st != EMPTY)
     free = st != RUNNING
-    table = build_configs(_spec("M2", "exits", 1000).model_copy(update={"incidence_deg": [0.0, 30.0, 60.0]})).table
+    spec = _spec("M2", "exits", 1000).model_copy(update={"incidence_deg": [0.0, 30.0, 60.0]})
+    table = config_table(spec, build_configs(spec))
     start, nxt, left = 5000, 7, int(free.sum()) - 100  # the last 100 free lanes get nothing
     launch = torch.tensor([start, nxt, nxt + left, n_cfg])
     key, absorbed, truncated, n_free, steps = finish_and_refill(full, table, launch, bins.batch_starts)

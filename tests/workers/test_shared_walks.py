@@ -24,7 +24,8 @@ from tests.support.tables import bitwise_equal
 from workers.fold.output import write_tables
 from workers.fold.reweight import MemberTallies, member_factors
 from workers.run.simulate import run_tasks, simulate, simulate_sweep
-from workers.fold.sweep import JobFold, group_walk
+from workers.fold.job import JobFold
+from workers.run.task import group_walk
 from workers.fold.tally import photon_moments
 
 TOTAL = 2
@@ -200,7 +201,8 @@ def test_same_bytes_on_one_thread_and_two_processes_and_the_leader_is_its_own_jo
 
 def test_group_fold_saved_and_restored_after_every_task_gives_the_same_results():
     from tests.support.tallies import tally_digest
-    from workers.fold.sweep import run_task, target_rule
+    from workers.fold.job import target_rule
+    from workers.run.task import run_task
     from workers.fold.tally import ShardTally
 
     spec = sweep_spec("hybrid", "shared", 4, 600, shards=3, target={"rel_stderr": 0.05},

@@ -20,7 +20,8 @@ from workers.fold.merge import Fold, MergeError, merge
 from workers.fold.output import write_tables
 from workers.run.shard import run_shard
 from workers.run.simulate import simulate, simulate_sweep
-from workers.fold.sweep import JobFold, run_task
+from workers.fold.job import JobFold
+from workers.run.task import run_task
 from workers.fold.tally import ShardTally
 
 TABLES = ("radial", "bins", "summary")

@@ -4,7 +4,7 @@ A value column (Rd_r, G, S, Rd, ...) must be finite; a standard error may be NaN
 tables define as "no error bar" (no event, or S_infinite_variance), but never infinite. Specs
 inside the physical ranges of schema.medium and schema.bins give finite tables; this is the
 defence behind that validation, so that nothing non-finite is published
-(:class:`workers.fold.output.TableWriter`, :func:`workers.fold.sweep.write_part`).
+(:class:`workers.fold.output.TableWriter`, :func:`workers.fold.job.write_part`).
 """
 
 from __future__ import annotations

@@ -11,8 +11,7 @@ import numpy as np
 
 from schema import SimulationSpec
 
-from workers.walk.binning import BinLayout
-from workers.run.plan import Configs, bin_layout, build_configs
+from .configs import BinLayout, Configs, bin_layout, build_configs
 from .tally import ShardTally, units_name
 
 __all__ = ["Result", "Fold", "merge", "MergeError"]

@@ -70,7 +70,8 @@ def table_spec(albedos, g: float, eta: float, photons: int, estimator: str, walk
 def measure(spec: SimulationSpec, progress=None) -> tuple[list, list[float]]:
     """Run every task on this thread; (Results in medium order, CPU seconds per walk group)."""
     from workers.run.simulate import run_tasks
-    from workers.fold.sweep import JobFold, group_walk
+    from workers.fold.job import JobFold
+    from workers.run.task import group_walk
 
     def items():
         for t in range(spec.task_count()):

@@ -16,16 +16,16 @@ import torch
 
 from schema import SimulationSpec
 
-from workers.walk.binning import BinLayout
+from workers.fold.configs import BinLayout, Configs, bin_layout, build_configs
+from workers.fold.tally import TallyLayout
 from workers.walk.connections import ConnectionGeometry
 from workers.walk.harvest import ExitBins
 from workers.walk.hybrid import K_SAMPLES, EntryLayout, FirstVertexGeometry
-from workers.walk.optics import fresnel_dielectric, incident_refracted_direction
+from workers.walk.optics import incident_refracted_direction
 from workers.walk.rng import stream_key, to_i32
-from workers.fold.tally import TallyLayout
 from workers.walk.walk import ConfigTable, WalkParams, compile_enabled
 
-__all__ = ["ShardPlan", "Configs", "build_configs", "bin_layout", "chunk_count", "CHUNK", "VERTEX_CHUNK", "EXIT_BLOCK", "HARVEST_DIVISOR"]
+__all__ = ["ShardPlan", "config_table", "chunk_count", "CHUNK", "VERTEX_CHUNK", "EXIT_BLOCK", "HARVEST_DIVISOR"]
 
 CHUNK = 1 << 14  # lanes per call of the compiled step (one static shape for every shard); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
@@ -39,60 +39,26 @@ EXIT_BLOCK = 1 << 12  # exit events per call of the compiled exit lookup (a harv
 HARVEST_DIVISOR = 8  # harvest once 1/HARVEST_DIVISOR of the lanes has finished (4 and 32 ran M1 slower here)
 
 
-@dataclass(frozen=True)
-class Configs:
-    """Per-configuration constants; configuration c = incidence index * n_channels + channel."""
-
-    incidence_deg: list[float]
-    channel_names: list[str]
-    sigma_t: np.ndarray  # [n_cfg] 1/mm
-    albedo: np.ndarray
-    g: np.ndarray
-    r_spec: np.ndarray  # specular reflectance at entry
-    table: ConfigTable
-    eta: float
-
-    @property
-    def n(self) -> int:
-        return len(self.sigma_t)
-
-    def channel_of(self, c: int) -> int:
-        return c % len(self.channel_names)
-
-    def incidence_of(self, c: int) -> float:
-        return self.incidence_deg[c // len(self.channel_names)]
-
-
-def build_configs(spec: SimulationSpec) -> Configs:
+def config_table(spec: SimulationSpec, cfgs: Configs) -> ConfigTable:
+    """The walk's per-configuration table (float32 optics, entry direction, Philox key) of the
+    configurations ``cfgs`` of ``spec`` (:func:`workers.fold.configs.build_configs`)."""
     channels = spec.channels()
-    eta = float(spec.medium.eta)
     rows = []
     for i_inc, theta in enumerate(spec.incidence_deg):
-        cos_i = math.cos(math.radians(theta))
-        r_spec = float(fresnel_dielectric(torch.tensor(cos_i, dtype=torch.float64), eta))
-        ux0, _, uz0 = incident_refracted_direction(math.radians(theta), eta)
+        ux0, _, uz0 = incident_refracted_direction(math.radians(theta), cfgs.eta)
         for i_ch, ch in enumerate(channels):
             fingerprint = json.dumps(
-                [i_inc, theta, i_ch, ch.sigma_a, ch.sigma_s, ch.g, eta], separators=(",", ":")
+                [i_inc, theta, i_ch, ch.sigma_a, ch.sigma_s, ch.g, cfgs.eta], separators=(",", ":")
             )
             k0, k1 = stream_key(spec.seed, fingerprint)
-            rows.append((ch.sigma_t, ch.albedo, ch.g, r_spec, ux0, uz0, k0, k1))
-    cols = list(zip(*rows))
+            rows.append((ux0, uz0, k0, k1))
+    ux0s, uz0s, k0s, k1s = zip(*rows)
     f32 = lambda v: torch.tensor(v, dtype=torch.float32)  # noqa: E731
-    table = ConfigTable(
-        albedo=f32(cols[1]), g=f32(cols[2]), w0=f32([1.0 - r for r in cols[3]]),
-        ux0=f32(cols[4]), uz0=f32(cols[5]),
-        k0=to_i32(torch.tensor(cols[6], dtype=torch.int64)), k1=to_i32(torch.tensor(cols[7], dtype=torch.int64)),
+    return ConfigTable(
+        albedo=f32(cfgs.albedo.tolist()), g=f32(cfgs.g.tolist()), w0=f32([1.0 - r for r in cfgs.r_spec.tolist()]),
+        ux0=f32(ux0s), uz0=f32(uz0s),
+        k0=to_i32(torch.tensor(k0s, dtype=torch.int64)), k1=to_i32(torch.tensor(k1s, dtype=torch.int64)),
     )  # fmt: skip
-    return Configs(
-        incidence_deg=list(spec.incidence_deg), channel_names=[c.name for c in channels],
-        sigma_t=np.array(cols[0]), albedo=np.array(cols[1]), g=np.array(cols[2]),
-        r_spec=np.array(cols[3]), table=table, eta=eta,
-    )  # fmt: skip
-
-
-def bin_layout(spec: SimulationSpec) -> BinLayout:
-    return BinLayout(spec.radial_edges_mm(), spec.theta_s_edges(), spec.cos_theta_o_edges(), spec.phi_o_edges())
 
 
 def chunk_count(n_launch: int, chunk: int) -> int:
@@ -115,6 +81,7 @@ class ShardPlan:
     spec: SimulationSpec
     shard_index: int
     cfgs: Configs
+    table: ConfigTable  # the walk's per-configuration constants (config_table)
     layout: BinLayout
     start: int
     stop: int
@@ -146,12 +113,13 @@ class ShardPlan:
     @classmethod
     def build(cls, spec: SimulationSpec, shard_index: int) -> "ShardPlan":
         cfgs, layout = build_configs(spec), bin_layout(spec)
+        table = config_table(spec, cfgs)
         start, stop = spec.shard_photon_range(shard_index)
         estimators = spec.table_estimators
         compiled = compile_enabled()
         connect = "connections" in estimators
         chunk = CONNECT_CHUNK if connect else CHUNK if compiled else EAGER_CHUNK
-        abs_g = np.abs(cfgs.table.g.numpy())
+        abs_g = np.abs(table.g.numpy())
         params = WalkParams(
             inv_eta=1.0 / cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
             hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed",
@@ -167,7 +135,7 @@ class ShardPlan:
         exit_bins = ExitBins(radial_mm=radial_mm, sigma_t=sigma_t, batch_starts=starts, inv_eta=params.inv_eta, **counts)
         first_vertex = None
         if "hybrid" in estimators:
-            t = cfgs.table
+            t = table
             first_vertex = FirstVertexGeometry(
                 edges=edges_opt.to(torch.float32).contiguous(), u0x=t.ux0, u0z=t.uz0, w0=t.w0, albedo=t.albedo,
                 g=t.g, k0=t.k0, k1=t.k1, eta=cfgs.eta, k=min(K_SAMPLES, layout.n_r * layout.n_theta), hg_branch=params.hg_branch, **counts,
@@ -177,7 +145,7 @@ class ShardPlan:
         offsets = tuple(int(o) for o in TallyLayout(cfgs.n, layout.shape).square_offsets[:4])
         entry_layout = EntryLayout(n_sp=n_sp, n_dir=n_dir, n_theta=layout.n_theta, square_offsets=offsets)
         return cls(
-            spec=spec, shard_index=shard_index, cfgs=cfgs, layout=layout, start=start, stop=stop, estimators=estimators,
+            spec=spec, shard_index=shard_index, cfgs=cfgs, table=table, layout=layout, start=start, stop=stop, estimators=estimators,
             compiled=compiled, chunk=chunk, n_lanes=n_lanes,
             # A step costs the same for idle lanes: a shard's last photons, the longest paths, are
             # stepped in one short chunk (compiled: a second shape) once they fit.  Not with

@@ -78,7 +78,7 @@ class _Runner:
             walked = set(plan.cfgs.albedo.tolist())
             if len(walked) != 1 or batch_estimators:
                 raise ValueError("a shared walk needs one albedo for every configuration and only per-photon estimators (exits, hybrid)")
-            self.members = MemberTallies(members, walked.pop(), plan.cfgs.table.w0.double().numpy(), photon_estimators,
+            self.members = MemberTallies(members, walked.pop(), plan.table.w0.double().numpy(), photon_estimators,
                                          plan.cfgs.n, plan.layout.shape)  # fmt: skip
         self.vertex_buffer = VertexBuffer(VERTEX_CHUNK)
         # Lanes: [0, active * chunk) hold every running photon; chunks are views stepped one by one.
@@ -100,7 +100,7 @@ class _Runner:
         if self.members is not None:  # the finished lanes' state, before the refill overwrites it
             L = self.lanes
             snap = (L.status.clone(), L.nscat.clone(), L.w.clone())
-        key, absorbed, truncated, n_free, steps = self.kernels.finish(self.lanes, plan.cfgs.table, launch, plan.exit_bins.batch_starts)
+        key, absorbed, truncated, n_free, steps = self.kernels.finish(self.lanes, plan.table, launch, plan.exit_bins.batch_starts)
         launched = min(int(n_free), plan.n_launch - self.next_launch)
         self.next_launch += launched
         self.count.photon_steps += int(steps)
@@ -228,7 +228,7 @@ class _Runner:
         copies of its first vertex, whose results are cut off before tallying.
         """
         n = len(v)
-        (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.kernels.connect(v.pad(VERTEX_CHUNK), self.plan.cfgs.table, self.plan.geo)
+        (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.kernels.connect(v.pad(VERTEX_CHUNK), self.plan.table, self.plan.geo)
         cfg, comp = v.cfg, v.multiple
         batch = self.acc.batch_of(v.photon.numpy())
         flat = self.flat_index(cfg[:, None], comp[:, None], spu[:n], dru[:n])

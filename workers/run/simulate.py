@@ -123,18 +123,20 @@ def simulate_sweep(spec, out_dir: str, *, filesystem=None, progress=None, thread
     """Run every medium of the sweep `spec` in task order and write the job's
     tables into `out_dir`; returns the file names.
 
-    Tallies are folded as they arrive in task order (:class:`workers.fold.sweep.JobFold`), each
+    Tallies are folded as they arrive in task order (:class:`workers.fold.job.JobFold`), each
     finished medium's tables go to a part under ``out_dir/.parts`` and the parts are streamed
     into the tables at the end, so memory is one medium's accumulator and tables plus the shards
     in flight.  A medium stops early when `stop_rule` holds (default: the spec's target error,
-    :func:`workers.fold.sweep.target_rule`); its shards past the stop are skipped.
+    :func:`workers.fold.job.target_rule`); its shards past the stop are skipped.
     """
     import functools
     from collections import deque
 
     import pyarrow.fs as pafs
 
-    from workers.fold.sweep import JobFold, group_walk, read_part, target_rule, write_part, write_sweep_tables
+    from workers.fold.job import JobFold, read_part, target_rule, write_part, write_sweep_tables
+
+    from workers.run.task import group_walk
 
     fs = filesystem or pafs.LocalFileSystem()
     fold = JobFold(spec, stop_rule if stop_rule is not None else target_rule(spec))

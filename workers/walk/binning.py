@@ -1,6 +1,6 @@
-"""Bin geometry and bin lookup: annular sectors on the surface, equal-solid-angle directions.
+"""The walk's bin lookup (torch): annular sectors on the surface, equal-solid-angle directions.
 
-Conventions in :mod:`workers.walk.conventions`.  A spatial bin is r in [r_lo, r_hi) x theta_s in
+The layout of the bins is :class:`workers.fold.configs.BinLayout` (numpy).  Conventions in :mod:`workers.walk.conventions`.  A spatial bin is r in [r_lo, r_hi) x theta_s in
 [lo, hi) with area A = (r_hi^2 - r_lo^2)/2 * dtheta_s; a directional bin is uniform in cos(theta_o)
 over [0, 1] and in phi_o over the full turn, so every one has solid angle Omega = dcos * dphi =
 2 pi / (n_cos * n_phi).  Both azimuths are binned centred on the plane of incidence
@@ -12,12 +12,11 @@ the last edge so that Rd is the total diffuse reflectance.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-__all__ = ["BinLayout", "wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth"]
+__all__ = ["wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth"]
 
 TWO_PI = 2.0 * math.pi
 
@@ -103,50 +102,3 @@ def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: t
     cross = px * ty - py * tx
     dot = px * tx + py * ty
     return wrap_angle(torch.atan2(cross, dot))
-
-
-@dataclass(frozen=True)
-class BinLayout:
-    """Edges of every bin axis; radial edges per channel in mm.
-
-    radial_mm: float64 [n_channels, n_r + 1]; theta_s, cos_o, phi_o: float64 1-D edge arrays
-    (theta_s and phi_o centred on 0: :func:`schema.bins.azimuth_edges`).
-    The walk's lookups are :func:`uniform_index`, :func:`azimuth_index` and
-    :mod:`workers.walk.harvest`; the searched
-    reference they are tested against is in tests/reference/binning.py.
-    """
-
-    radial_mm: np.ndarray
-    theta_s: np.ndarray
-    cos_o: np.ndarray
-    phi_o: np.ndarray
-
-    @property
-    def n_r(self) -> int:
-        return self.radial_mm.shape[1] - 1
-
-    @property
-    def n_theta(self) -> int:
-        return len(self.theta_s) - 1
-
-    @property
-    def n_cos(self) -> int:
-        return len(self.cos_o) - 1
-
-    @property
-    def n_phi(self) -> int:
-        return len(self.phi_o) - 1
-
-    @property
-    def shape(self) -> tuple[int, int, int, int]:
-        """(n_r + 1 with overflow, n_theta, n_cos, n_phi): the per-component histogram shape."""
-        return (self.n_r + 1, self.n_theta, self.n_cos, self.n_phi)
-
-    def area_mm2(self, channel: int) -> np.ndarray:
-        """Area of each spatial bin [n_r, n_theta] in mm^2: (r_hi^2 - r_lo^2)/2 * dtheta_s."""
-        r = self.radial_mm[channel]
-        return np.outer(0.5 * (r[1:] ** 2 - r[:-1] ** 2), np.diff(self.theta_s))
-
-    def solid_angle(self) -> np.ndarray:
-        """Solid angle of each directional bin [n_cos, n_phi] in sr: dcos * dphi."""
-        return np.outer(np.diff(self.cos_o), np.diff(self.phi_o))

@@ -1,7 +1,7 @@
-"""A job's media in the workers: run a task, fold the tasks in order, write a sweep's tables.
+"""The fold of a job, whatever its media: its tasks' tallies in task order, then its tables.
 
 A job is G walk groups x S shards, task t = k S + s (:mod:`schema.media`, :mod:`schema.groups`).
-Task t runs shard s of the group leader's own single-medium spec (:func:`run_task`), so it has one
+Task t runs shard s of the group leader's own single-medium spec (:func:`workers.run.task.run_task`), so it has one
 eta and one compiled walk kernel, and tallies the group's other albedos from the same walk
 (:mod:`workers.fold.reweight`).  With independent walks every group is one medium and a sweep's entry
 is the single-medium job bit for bit; with shared walks that holds for each group's leader.
@@ -31,35 +31,17 @@ from schema.version import code_version
 from .finite import check_finite
 from .merge import Fold, MergeError, Result
 from .output import NORMALISATION, RNG_FACT, TableWriter, bins_table, engine_fact, radial_table, summary_table
-from workers.run.shard import run_shard
 from .reweight import member_prefix
 from .tally import ShardTally
 from .target import target_status
 
 __all__ = [
-    "run_task", "group_walk", "walk_facts", "split_group_tally", "JobFold", "StopRule", "target_rule", "medium_facts", "sweep_run_facts",
+    "walk_facts", "split_group_tally", "JobFold", "StopRule", "target_rule", "medium_facts", "sweep_run_facts",
     "write_part", "read_part", "write_sweep_tables", "PART_FILES",
 ]
 
 StopRule = Callable[[Result], bool]
 PART_FILES = ("radial.parquet", "bins.parquet", "summary.parquet")
-
-
-def group_walk(spec: SimulationSpec, group: int) -> tuple[int, tuple[float, ...]]:
-    """(leader medium, the other members' albedos in medium order) of walk group ``group``."""
-    media = spec.walk_groups()[group]
-    if len(media) == 1:
-        return media[0], ()
-    albedos = spec.sweep.albedos()
-    return media[-1], tuple(albedos[m % len(albedos)] for m in media[:-1])
-
-
-def run_task(spec: SimulationSpec, task: int, *, progress: Callable[[int], None] | None = None) -> ShardTally:
-    """Task ``task`` of the job: shard s of walk group k's leader's own spec (t = k * shards + s),
-    tallying the group's other members from that walk."""
-    group, shard = spec.task_of(task)
-    leader, members = group_walk(spec, group)
-    return run_shard(spec.medium_spec(leader), shard, progress=progress, members=members)
 
 
 def split_group_tally(tally: ShardTally, n_members: int) -> list[ShardTally]:
