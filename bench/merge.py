@@ -87,7 +87,7 @@ def _merge_in_this_process(db_url: str, storage_uri: str) -> None:
     from service.datasets import DatasetStorage, run_merge_task
     from service.store import JobStore, TaskKind
 
-    import workers.fold.job  # noqa: F401  (torch and the fold, imported before the baseline)
+    import workers.fold.job  # noqa: F401  (the fold and the tables, imported before the baseline)
 
     store, storage = JobStore(db_url), DatasetStorage(storage_uri)
     base = _reset_peak_rss()

@@ -86,16 +86,21 @@ class MemberTallies:
     def __len__(self) -> int:
         return len(self.accs)
 
-    def _add(self, estimator: str, row: int, size: int, parts) -> None:
-        """Add to row ``row`` of every member's linear accumulator the sum of bincounts of
-        (flat index [n], weights [J, n]) parts: one bincount over all members per part (member
-        j's entries offset by j * size), summed per member in the order of its entries."""
+    def _bincounts(self, parts, size: int) -> np.ndarray:
+        """[members, size]: per member the sum over ``parts`` (index [n], weights [members, n]) of
+        the bincounts, one bincount over all members per part (member j's entries offset by j * size)."""
         total = None
         for flat, w in parts:
             idx = (np.arange(len(self.accs))[:, None] * size + flat[None, :]).ravel()
             b = np.bincount(idx, weights=w.ravel(), minlength=len(self.accs) * size).reshape(len(self.accs), size)
             total = b if total is None else total + b
-        for acc, t in zip(self.accs, total):
+        return total
+
+    def _add(self, estimator: str, row: int, size: int, parts) -> None:
+        """Add to row ``row`` of every member's linear accumulator the sum of bincounts of
+        (flat index [n], weights [J, n]) parts: one bincount over all members per part (member
+        j's entries offset by j * size), summed per member in the order of its entries."""
+        for acc, t in zip(self.accs, self._bincounts(parts, size)):
             acc.linear[estimator][row] += t
 
     def add_exits(self, flat: np.ndarray, g: np.ndarray, s: np.ndarray, nscat: np.ndarray) -> None:
@@ -141,12 +146,7 @@ class MemberTallies:
         n_sq = int(self.accs[0].layout.square_offsets[-1])
         key_s, key_e = key[..., :-1].reshape(-1), key[..., -1].reshape(-1)
         parts = [(key_s, q_ss[None, :] * (r * r)), (key_e, q_se[None, :] * (2.0 * r * f8) + q_ee[None, :] * (f8 * f8))]
-        total = None
-        for k, w in parts:
-            idx = (np.arange(len(self.accs))[:, None] * n_sq + k[None, :]).ravel()
-            b = np.bincount(idx, weights=w.ravel(), minlength=len(self.accs) * n_sq).reshape(len(self.accs), n_sq)
-            total = b if total is None else total + b
-        for acc, sq in zip(self.accs, total):
+        for acc, sq in zip(self.accs, self._bincounts(parts, n_sq)):
             if "hybrid" in acc.squares:
                 acc.squares["hybrid"] += sq
             else:

@@ -19,6 +19,8 @@ import time
 
 from schema import SimulationSpec
 
+from workers.run.simulate import positive_int
+
 __all__ = ["MEDIA", "bench_one", "add_parser", "main"]
 
 MEDIA = {
@@ -87,19 +89,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=main)
 
 
-def _at_least_one(text: str) -> int:
-    n = int(text)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
-    return n
-
-
 def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--media", default="M1,M2", help="comma-separated subset of M1,M2")
     p.add_argument("--estimators", default="hybrid,exits,connections", help="comma-separated subset of hybrid,exits,connections")
     p.add_argument("--photons", type=int, help="photons per run (default: per medium and estimator)")
     p.add_argument("--threads", type=int, default=1, help="shards run concurrently, one worker process and core each (default 1)")
-    p.add_argument("--repeat", type=_at_least_one, default=3, help="timed runs; the median is reported (default 3)")
+    p.add_argument("--repeat", type=positive_int, default=3, help="timed runs; the median is reported (default 3)")
     p.add_argument("--json", action="store_true", help="print one JSON object keyed by medium and estimator")
 
 

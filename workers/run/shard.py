@@ -19,6 +19,7 @@ import torch
 
 from schema import SimulationSpec
 
+from workers.walk.binning import histogram_index
 from workers.walk.connections import Vertices, VertexBuffer, connection_function
 from workers.walk.engine import init_engine
 from workers.walk.harvest import exit_function, finish_function
@@ -193,9 +194,7 @@ class _Runner:
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
         layout = self.plan.layout
-        n_dir = layout.n_cos * layout.n_phi
-        n_sp = (layout.n_r + 1) * layout.n_theta
-        return ((cfg * 2 + comp) * n_sp + spatial) * n_dir + direction
+        return histogram_index(cfg, comp, spatial, direction, (layout.n_r + 1) * layout.n_theta, layout.n_cos * layout.n_phi)
 
     # -- connection estimator -----------------------------------------------------------------
     def collect_vertices(self, vertex, offset: int) -> None:

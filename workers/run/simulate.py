@@ -23,7 +23,7 @@ from .cores import default_workers
 # torch and the walk are imported where they are used: `bssrdf run` and `bssrdf --help` build
 # this module's parser, and a worker-launching parent must not spend seconds importing torch.
 
-__all__ = ["add_parser", "main", "simulate", "simulate_to_target", "simulate_sweep", "run_shards", "run_tasks", "format_summary"]
+__all__ = ["add_parser", "main", "positive_int", "simulate", "simulate_to_target", "simulate_sweep", "run_shards", "run_tasks", "format_summary"]
 
 
 def simulate(spec, *, progress=None, threads: int | None = None, processes: int | None = None):
@@ -235,7 +235,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default="out", help="output directory (created; default ./out)")
     p.add_argument("--photons", type=int, help="override the spec's photons per incidence angle and channel")
     p.add_argument("--seed", type=int, help="override the spec's seed")
-    p.add_argument("--workers", type=_positive, default=default_workers(),
+    p.add_argument("--workers", type=positive_int, default=default_workers(),
                    help="shards run concurrently, each in its own process on one core (default: one "
                    "per core, %(default)s here); 1 runs them one after another in this process")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
@@ -243,7 +243,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=main)
 
 
-def _positive(text: str) -> int:
+def positive_int(text: str) -> int:
+    """argparse type of an option that counts something: an integer >= 1."""
     value = int(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")

@@ -16,7 +16,7 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth"]
+__all__ = ["wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth", "histogram_index"]
 
 TWO_PI = 2.0 * math.pi
 
@@ -102,3 +102,14 @@ def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: t
     cross = px * ty - py * tx
     dot = px * tx + py * ty
     return wrap_angle(torch.atan2(cross, dot))
+
+
+def histogram_index(cfg, comp, spatial, direction, n_sp: int, n_dir: int, n_comp: int = 2):
+    """Index into a flattened [configuration, component, spatial, direction] histogram.
+
+    spatial = ir * n_theta + it among n_sp = (n_r + 1) n_theta bins (overflow included),
+    direction = ic * n_phi + ip among n_dir = n_cos n_phi; n_comp components (single and
+    multiple, or with the total: 3).  Integer tensors or ints; the exit tally, the hybrid and the
+    shard run's connections all index their histograms with it.
+    """
+    return ((cfg * n_comp + comp) * n_sp + spatial) * n_dir + direction

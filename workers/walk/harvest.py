@@ -55,7 +55,7 @@ from functools import lru_cache
 
 import torch
 
-from .binning import azimuth_index, outgoing_azimuth, uniform_index
+from .binning import azimuth_index, histogram_index, outgoing_azimuth, uniform_index
 from .kernels import compile_kernel
 from .optics import refracted_cos
 from .walk import EMPTY, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_lanes
@@ -138,7 +138,7 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     comp = (lanes.nscat[idx] >= 2).to(torch.int64)
     n_sp = (bins.n_r + 1) * bins.n_theta
     n_dir = bins.n_cos * bins.n_phi
-    flat = ((cfg * 2 + comp) * n_sp + ir * bins.n_theta + it) * n_dir + ic * bins.n_phi + ip
+    flat = histogram_index(cfg, comp, ir * bins.n_theta + it, ic * bins.n_phi + ip, n_sp, n_dir)
     batch = batch_index(lanes.photon[idx], bins.batch_starts)
     wd = lanes.w[idx].double()
     return flat, batch, wd, wd / cos_o

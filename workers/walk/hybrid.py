@@ -42,7 +42,7 @@ from functools import lru_cache
 
 import torch
 
-from .binning import TWO_PI, azimuth_index, outgoing_azimuth, uniform_index
+from .binning import TWO_PI, azimuth_index, histogram_index, outgoing_azimuth, uniform_index
 from .conventions import PURPOSE_CONNECT, PURPOSE_WALK
 from .harvest import ExitBins, count_le, exit_bins
 from .kernels import compile_kernel
@@ -214,11 +214,11 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     comp = torch.zeros_like(spatial)
     comp[:, -1] = 1
     c = cfg[:, None]
-    flat2 = ((c * 2 + comp) * lay.n_sp + spatial) * lay.n_dir + direction
+    flat2 = histogram_index(c, comp, spatial, direction, lay.n_sp, lay.n_dir)
     keys, values = [], []
     o_bins_g, o_bins_s, o_radial, o_rd = lay.square_offsets
     for c3 in (comp, torch.full_like(comp, 2)):
-        b = ((c * 3 + c3) * lay.n_sp + spatial) * lay.n_dir + direction
+        b = histogram_index(c, c3, spatial, direction, lay.n_sp, lay.n_dir, n_comp=3)
         n_r1 = lay.n_sp // lay.n_theta
         keys += [b + o_bins_g, b + o_bins_s, (c * 3 + c3) * n_r1 + torch.div(spatial, lay.n_theta, rounding_mode="floor") + o_radial,
                  c * 3 + c3 + o_rd]  # fmt: skip
