@@ -22,6 +22,7 @@ from workers.walk.connections import ConnectionGeometry
 from workers.walk.harvest import ExitBins
 from workers.walk.hybrid import K_SAMPLES, EntryLayout, FirstVertexGeometry
 from workers.walk.optics import incident_refracted_direction
+from workers.walk.phase import phase_of
 from workers.walk.rng import stream_key, to_i32
 from workers.walk.walk import ConfigTable, WalkParams, compile_enabled
 
@@ -122,14 +123,14 @@ class ShardPlan:
         abs_g = np.abs(table.g.numpy())
         params = WalkParams(
             inv_eta=1.0 / cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
-            hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed",
+            hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed", phase=phase_of(spec),
         )  # fmt: skip
         sigma_t = torch.tensor(cfgs.sigma_t, dtype=torch.float64)
         radial_mm = torch.from_numpy(layout.radial_mm[[cfgs.channel_of(c) for c in range(cfgs.n)]])  # [cfg, n_r + 1]
         edges_opt = radial_mm * sigma_t[:, None]
         counts = dict(n_theta=layout.n_theta, n_cos=layout.n_cos, n_phi=layout.n_phi)
         geo = ConnectionGeometry(
-            r_lo=edges_opt[:, :-1].to(torch.float32).contiguous(), r_hi=edges_opt[:, 1:].to(torch.float32).contiguous(), eta=cfgs.eta, **counts,
+            r_lo=edges_opt[:, :-1].to(torch.float32).contiguous(), r_hi=edges_opt[:, 1:].to(torch.float32).contiguous(), eta=cfgs.eta, phase=params.phase, **counts,
         )  # fmt: skip
         starts = torch.tensor([a for a, _ in spec.batch_photon_ranges(shard_index)], dtype=torch.int64)
         exit_bins = ExitBins(radial_mm=radial_mm, sigma_t=sigma_t, batch_starts=starts, inv_eta=params.inv_eta, **counts)
@@ -138,7 +139,7 @@ class ShardPlan:
             t = table
             first_vertex = FirstVertexGeometry(
                 edges=edges_opt.to(torch.float32).contiguous(), u0x=t.ux0, u0z=t.uz0, w0=t.w0, albedo=t.albedo,
-                g=t.g, k0=t.k0, k1=t.k1, eta=cfgs.eta, k=min(K_SAMPLES, layout.n_r * layout.n_theta), hg_branch=params.hg_branch, **counts,
+                g=t.g, k0=t.k0, k1=t.k1, eta=cfgs.eta, k=min(K_SAMPLES, layout.n_r * layout.n_theta), hg_branch=params.hg_branch, phase=params.phase, **counts,
             )  # fmt: skip
         n_lanes = chunk_count((stop - start) * cfgs.n, chunk) * chunk
         n_sp, n_dir = (layout.n_r + 1) * layout.n_theta, layout.n_cos * layout.n_phi

@@ -35,7 +35,8 @@ import torch
 from .binning import TWO_PI, azimuth_index, outgoing_azimuth, uniform_index
 from .conventions import PURPOSE_CONNECT
 from .kernels import compile_kernel
-from .optics import fresnel_transmittance, hg_pdf, refracted_cos, transmittance_cos_ratio
+from .optics import fresnel_transmittance, refracted_cos, transmittance_cos_ratio
+from .phase import DEFAULT_PHASE, phase_function
 from .rng import philox4x32, photon_words, uniform_halfopen
 from .walk import ConfigTable
 
@@ -131,6 +132,7 @@ class ConnectionGeometry:
     n_cos: int
     n_phi: int
     eta: float
+    phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
 
     @property
     def n_r(self) -> int:
@@ -182,14 +184,14 @@ def connect_uniform(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     d = torch.sqrt(d2)
     cos_in = dz / d
     mu = (v.ux[:, None] * dx + v.uy[:, None] * dy + v.uz[:, None] * dz) / d
-    q_p = hg_pdf(mu, g[:, None]) * cos_in / d2
+    q_p = phase_function(geo.phase).pdf(mu, g[:, None]) * cos_in / d2
     # q_u = 1/(r dr dtheta) is infinite at r = 0: the clamp makes its MIS weight exactly 0 there.
     q_u = 1.0 / torch.clamp(r * dr * dtheta, min=1e-30)
     # f / (q_u + q_p) to G; to S the same with T cos_in / cos_o for T cos_in (bounded, exactly 1
     # at eta = 1 however grazing: no division by a cos_o that rounds to 0).
     base = (v.w * albedo)[:, None] * torch.exp(-d) / (q_p + q_u)
     G = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
-    S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (hg_pdf(mu, g[:, None]) / d2)
+    S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (phase_function(geo.phase).evaluate(mu, g[:, None]) / d2)
     _, direction = _direction_bin(xo, yo, dx, dy, cos_in, geo)
     spatial = torch.arange(n_bins, dtype=torch.int64)[None, :].expand_as(direction)
     return G, S, spatial, direction
@@ -220,13 +222,13 @@ def connect_phase(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     it = azimuth_index(torch.atan2(yo, xo), n_t)
     cos_in = torch.clamp(vz, 0.0, 1.0)
     mu = v.ux * vx + v.uy * vy + v.uz * vz
-    q_p = hg_pdf(mu, g) * cos_in / (t * t)
+    q_p = phase_function(geo.phase).pdf(mu, g) * cos_in / (t * t)
     q_u = torch.where(inside, 1.0 / torch.clamp(r * dr * dtheta, min=1e-30), torch.zeros_like(r))
     # G = w albedo exp(-t) T q_p / (q_p + q_u); S the same with T cos_in / cos_o for T and
     # q_p / cos_in = p / t^2 for q_p (see connect_uniform).
     base = torch.where(up & (q_p > 0), w * albedo * torch.exp(-t) / torch.clamp(q_p + q_u, min=1e-30), torch.zeros_like(w))
     G = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
-    S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (hg_pdf(mu, g) / (t * t))
+    S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (phase_function(geo.phase).evaluate(mu, g) / (t * t))
     _, direction = _direction_bin(xo, yo, vx, vy, cos_in, geo)
     spatial = ir * n_t + it
     return G, S, spatial, direction

@@ -46,7 +46,8 @@ from .binning import TWO_PI, azimuth_index, histogram_index, outgoing_azimuth, u
 from .conventions import PURPOSE_CONNECT, PURPOSE_WALK
 from .harvest import ExitBins, count_le, exit_bins
 from .kernels import compile_kernel
-from .optics import fresnel_transmittance, hg_pdf, refracted_cos, sample_exponential, sample_hg, scatter_direction, transmittance_cos_ratio
+from .optics import fresnel_transmittance, refracted_cos, sample_exponential, scatter_direction, transmittance_cos_ratio
+from .phase import DEFAULT_PHASE, phase_function
 from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
 from .walk import EXITED, Lanes
 
@@ -84,6 +85,7 @@ class FirstVertexGeometry:
     eta: float
     k: int
     hg_branch: str
+    phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
 
     @property
     def n_r(self) -> int:
@@ -128,7 +130,8 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
     dtheta = TWO_PI / n_t
 
     # Phase technique: the walk's own scattering direction at the vertex.
-    cos_t = sample_hg(uniform_halfopen(b2), geo.g[cfg], geo.hg_branch)
+    phase = phase_function(geo.phase)
+    cos_t = phase.sample_cos(uniform_halfopen(b2), geo.g[cfg], geo.hg_branch)
     vx, vy, vz = scatter_direction(ux, uy, uz, cos_t, uniform_halfopen(b3) * (2.0 * torch.pi))
     up = vz > 0
     t = -pz / torch.clamp(vz, min=1e-30)
@@ -142,7 +145,7 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
     sb = irc * n_t + it
     q_u = torch.where(inside, 1.0 / torch.clamp(_stratum_size(sb, n_bins, geo.k) * r * dr * dtheta, min=1e-30), 0.0)
     cos_in = torch.clamp(vz, 0.0, 1.0)
-    p = hg_pdf(ux * vx + uz * vz, g)
+    p = phase.pdf(ux * vx + uz * vz, g)  # = evaluate: sampled exactly (workers.walk.phase)
     tt = torch.clamp(t * t, min=1e-30)
     q_p = p * cos_in / tt
     base = torch.where(up & (q_p > 0), wa * torch.exp(-t) / torch.clamp(q_p + q_u, min=1e-30), 0.0)
@@ -168,7 +171,7 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
         d2 = dx * dx + dy * dy + dz * dz
         d = torch.sqrt(d2)
         cin = dz / d
-        pj = hg_pdf((ux * dx + uz * dz) / d, g)
+        pj = phase.pdf((ux * dx + uz * dz) / d, g)
         qpj = pj * cin / d2
         # q_j is infinite at r = 0: the clamp makes this sample's weight exactly 0 there.
         qj = 1.0 / torch.clamp(n_j * rr * drj * dtheta, min=1e-30)

@@ -21,7 +21,8 @@ import torch
 
 from .conventions import PURPOSE_WALK
 from .kernels import compile_kernel
-from .optics import fresnel_dielectric, sample_exponential, sample_hg, scatter_direction
+from .optics import fresnel_dielectric, sample_exponential, scatter_direction
+from .phase import DEFAULT_PHASE, phase_function
 from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
 
 __all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "ConfigTable", "STEP_FIELDS", "walk_step", "step_function", "refill_lanes", "compile_enabled"]
@@ -51,6 +52,7 @@ class WalkParams:
     w_min: float = 1e-3
     survival: float = 0.1
     hg_branch: str = "mixed"  # "large" / "small": every |g| >= 0.1 / < 0.1 (see sample_hg)
+    phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
 
 
 @dataclass
@@ -169,7 +171,7 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
     truncated = coll & ~killed & (nscat_new >= p.max_scatter)
 
     # Collision: new direction (Henyey-Greenstein), on every collided lane.
-    cos_t = sample_hg(uniform_halfopen(b2), lanes.g, p.hg_branch)
+    cos_t = phase_function(p.phase).sample_cos(uniform_halfopen(b2), lanes.g, p.hg_branch)
     phi = uniform_halfopen(b3) * (2.0 * torch.pi)
     nx, ny, nz = scatter_direction(ux, uy, uz, cos_t, phi)
 
