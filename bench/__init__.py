@@ -11,5 +11,5 @@ checkout, e.g. ``python -m bench.load``):
 - :mod:`bench.headers`: a client's latency while big request headers arrive.
 
 The walk's own benchmarks are product commands in ``workers`` (``bssrdf bench``,
-``python -m workers.efficiency``, ``python -m workers.table_cost``). Figures: BENCHMARKS.md.
+``python -m workers.measure.efficiency``, ``python -m workers.measure.table_cost``). Figures: BENCHMARKS.md.
 """

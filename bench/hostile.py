@@ -133,7 +133,7 @@ class Bench:
 
     def check_published(self, name: str, version: int) -> None:
         """Every float of the version's tables finite (standard errors may be NaN: no error bar)."""
-        from workers.finite import NonFiniteResult, check_finite
+        from workers.fold.finite import NonFiniteResult, check_finite
 
         for table in ("radial", "bins", "summary"):
             path = self.storage / name / f"v{version}" / f"{table}.parquet"

@@ -43,7 +43,7 @@ def stage_job(db_url: str, storage_uri: str, spec, shards: range | None = None, 
     told another ``fold_batch``."""
     from service.datasets import DatasetStorage, JobFiles
     from service.store import JobStore
-    from workers.shard import run_shard
+    from workers.run.shard import run_shard
 
     store = JobStore(db_url, fold_batch=fold_batch or spec.task_count() + 1)
     storage = DatasetStorage(storage_uri)
@@ -87,7 +87,7 @@ def _merge_in_this_process(db_url: str, storage_uri: str) -> None:
     from service.datasets import DatasetStorage, run_merge_task
     from service.store import JobStore, TaskKind
 
-    import workers.sweep  # noqa: F401  (torch and the fold, imported before the baseline)
+    import workers.fold.job  # noqa: F401  (the fold and the tables, imported before the baseline)
 
     store, storage = JobStore(db_url), DatasetStorage(storage_uri)
     base = _reset_peak_rss()

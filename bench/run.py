@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from workers.bench import MEDIA
+from workers.measure.bench import MEDIA
 
 __all__ = ["main"]
 

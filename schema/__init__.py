@@ -10,7 +10,7 @@ Modules: :mod:`schema.spec` (SimulationSpec, load_spec), :mod:`schema.medium` (M
 ChannelOptics), :mod:`schema.presets` (Jensen et al. 2001 materials), :mod:`schema.bins`
 (BinSpec, edges), :mod:`schema.tables` (Arrow schemas, metadata keys), :mod:`schema.errors`,
 :mod:`schema.constraints` (range checks), :mod:`schema.names` (the name rule),
-:mod:`schema.version` (code version), :mod:`schema.export` (JSON Schema file),
+:mod:`schema.version` (code version), :mod:`schema.json_schema` (JSON Schema file),
 :mod:`schema.sweep` (SweepSpec: grids of media), :mod:`schema.media` (a job's media and its task
 index <-> (medium, shard)),
 :mod:`schema.estimate` (what a spec costs: photons, steps, CPU seconds per shard).
@@ -31,7 +31,7 @@ from .bins import (
     uniform_edges,
 )
 from .errors import ShardIndexError, SpecError, format_validation_error
-from .export import SPEC_SCHEMA_PATH, spec_json_schema_text, write_spec_json_schema
+from .json_schema import SPEC_SCHEMA_PATH, spec_json_schema_text, write_spec_json_schema
 from .media import Medium
 from .medium import ChannelOptics, MediumSpec
 from .presets import PRESET_CHANNELS, PRESETS, Preset, get_preset

@@ -11,7 +11,7 @@ AVX-512, compiled walk), written out so it can be checked:
 **Steps per photon.** With weights and Russian roulette a photon's weight after k collisions is
 a^k (a the single-scattering albedo), so it is rouletted after about
 
-    n_kill = ln(w_min) / ln(a)            (w_min = 1e-3: workers.walk.WalkParams)
+    n_kill = ln(w_min) / ln(a)            (w_min = 1e-3: workers.walk.walk.WalkParams)
 
 steps (analog absorption: its mean lifetime 1 / (1 - a)); a = 1 never stops before the path cap
 ``max_scatter``. Escape cuts the walk short: from a half-space the probability of a walk still
@@ -50,7 +50,7 @@ CONNECTION_SECONDS_PER_BIN = 2.9e-8
 ESCAPE_C = 2.5
 """Constant of the half-space survival model P(N > k) ~ c / sqrt(1 + (1 - g) k)."""
 ROULETTE_W_MIN = 1e-3
-"""Roulette threshold of the walk (workers.walk.WalkParams.w_min)."""
+"""Roulette threshold of the walk (workers.walk.walk.WalkParams.w_min)."""
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ also estimates, without bias, what it would contribute at any albedo a <= a_w:
 
     w (a / a_w)^n
 
-(workers/reweight.py derives this, roulette and the path cap included).  A sweep with shared
+(workers/fold/reweight.py derives this, roulette and the path cap included).  A sweep with shared
 walks walks each *group* of albedos of one (g, eta) once, at the group's largest albedo (its
 *leader*), and tallies every member from that walk.  The groups are contiguous ranges of the
 ascending albedo axis cut at ``group_edges``: a group starts at each edge (the first albedo

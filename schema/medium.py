@@ -1,6 +1,6 @@
 """The medium: per-channel optical coefficients, phase function and relative index.
 
-Conventions (workers/conventions.py, "Geometry"): the medium fills z < 0 below the surface
+Conventions (workers/walk/conventions.py, "Geometry"): the medium fills z < 0 below the surface
 z = 0; coefficients are in 1/mm; the phase function is Henyey-Greenstein with parameter g
 (mean cosine, |g| < 1); ``eta`` is the medium's index relative to the outside (index 1), eta < 1
 allowed.

@@ -1,7 +1,7 @@
 """What a spec will store before it runs: the shard payload and the dataset size (torch-free).
 
-A shard's result (``workers.tally.ShardTally``) holds, per estimator, three float64 sums
-(S1, S2, SXN: workers.tally) and an int64 event count of every quantity, for every configuration c (incidence angle x
+A shard's result (``workers.fold.tally.ShardTally``) holds, per estimator, three float64 sums
+(S1, S2, SXN: workers.fold.tally) and an int64 event count of every quantity, for every configuration c (incidence angle x
 channel of its medium) and component (single, multiple, total):
 
     bins_G, bins_S   [c, 3, n_r + 1, n_theta_s, n_cos, n_phi]   (radial index n_r: beyond r_max)

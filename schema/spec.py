@@ -8,7 +8,7 @@ splits its range the same way into ``batches_per_shard`` batches, the independen
 standard errors are estimated from.
 
 Incidence angles theta_i are in degrees in the x-z plane, 0 = normal; the incoming ray travels
-along (sin theta_i, 0, -cos theta_i) (workers/conventions.py, "Directions").
+along (sin theta_i, 0, -cos theta_i) (workers/walk/conventions.py, "Directions").
 """
 
 from __future__ import annotations

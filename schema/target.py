@@ -17,7 +17,7 @@ channel), the ``total`` component has
 A quantity with no contributing event (standard error NaN) or an estimate of 0 does not meet
 any target, nor does one whose standard error rests on fewer than 30 independent units (29
 degrees of freedom: photons for the exit tally and the hybrid, batches for connections, whose
-runs therefore stop no sooner than after 30 batches).  The decision is :func:`workers.target.target_status`; shards should be small enough
+runs therefore stop no sooner than after 30 batches).  The decision is :func:`workers.fold.target.target_status`; shards should be small enough
 (photons / shards) for the stop to come close to the photons actually needed.
 """
 

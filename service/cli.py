@@ -16,10 +16,10 @@ from schema.version import code_version
 __all__ = ["main", "SUBCOMMANDS", "version_text"]
 
 SUBCOMMANDS = (
-    "workers.simulate",  # simulate: in-process measurement
-    "workers.bench",  # bench: walk throughput
+    "workers.run.simulate",  # simulate: in-process measurement
+    "workers.measure.bench",  # bench: walk throughput
     "service.runner",  # run: local job service end to end
-    "service.worker",  # worker: claim, run, commit
+    "service.worker_command",  # worker: claim, run, commit
     "service.serve",  # serve: the HTTP API
     "service.client",  # submit, status, datasets
     "service.export",  # export: a version's export as files

@@ -27,7 +27,7 @@ from urllib.parse import quote
 import httpx
 
 from service.runner import format_progress, format_si
-from workers.simulate import format_summary
+from workers.run.simulate import format_summary
 
 __all__ = ["ApiClient", "ApiError", "add_parser", "main", "format_error", "follow_job", "TERMINAL_STATES"]
 

@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from workers.cores import default_workers
-from workers.simulate import format_summary  # torch-free: the walk is imported where it runs
+from workers.run.cores import default_workers
+from workers.run.simulate import format_summary  # torch-free: the walk is imported where it runs
 
 __all__ = ["add_parser", "main", "run_local", "start_workers", "signal_workers", "stop_workers", "format_progress", "format_si", "format_summary"]
 

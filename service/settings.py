@@ -47,6 +47,9 @@ __all__ = ["Settings", "get_settings", "settings_or_exit", "sqlite_url_for", "DE
 
 DEFAULT_DATA_DIR = "./.bssrdf"
 
+IDLE_BACKOFF_CAP = 8.0
+"""A worker's default ``max_poll_seconds`` as a multiple of its ``poll_seconds``."""
+
 
 def sqlite_url_for(data_dir: str | Path) -> str:
     """SQLAlchemy URL of the embedded job store inside ``data_dir`` (``jobs.sqlite``)."""

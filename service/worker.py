@@ -2,6 +2,7 @@
 
     bssrdf worker --db URL --storage URI [--once] [--max-tasks N] [--lease-seconds S]
 
+(the command line is :mod:`service.worker_command`; ``python -m service.worker`` runs it too).
 ``Worker.run`` installs the signal handlers and calls ``loop``; ``loop`` alternates ``claim`` and
 ``process``. While a task runs, a heartbeat thread extends the lease every ``heartbeat_seconds``;
 if a heartbeat finds the lease lost (expired and re-claimed, or the job cancelled) the shard is
@@ -15,7 +16,6 @@ stderr is a terminal.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
@@ -31,17 +31,16 @@ from sqlalchemy.exc import DBAPIError
 
 from schema import SimulationSpec, parse_spec
 from service.datasets import DatasetStorage, JobFiles, run_merge_task
-from service.logs import configure_logging
-from service.settings import settings_or_exit, sqlite_url_for
-from service.store import JobNotFound, JobStore, Lease, LeaseLost, StoreUnavailable, TaskKind, open_store
-from workers.finite import NonFiniteResult
+from service.settings import IDLE_BACKOFF_CAP
+from service.store import JobNotFound, JobStore, Lease, LeaseLost, TaskKind
+from workers.fold.finite import NonFiniteResult
+from workers.run.task import run_task
+from workers.walk.kernels import observe_compiles
 
-__all__ = ["Worker", "add_parser", "main", "compile_phase"]
+__all__ = ["Worker", "compile_phase"]
 
 log = logging.getLogger("bssrdf.worker")
 
-IDLE_BACKOFF_CAP = 8.0
-"""Default ``max_poll_seconds`` as a multiple of ``poll_seconds``."""
 
 
 class _Abandon(Exception):
@@ -263,7 +262,7 @@ class Worker:
         """Run task ``lease.shard_index`` (shard s of medium m, schema.media), write its tally as
         a file in the job's staging area, and commit the file's URI, size and sha256.
 
-        While a kernel compiles (:func:`workers.kernels.observe_compiles`) the heartbeat reports
+        While a kernel compiles (:func:`workers.walk.kernels.observe_compiles`) the heartbeat reports
         the phase at once (:func:`compile_phase`) and the stall clock is held: a compile is not
         a hung walk."""
         phase = [None] if phase is None else phase
@@ -337,11 +336,6 @@ class Worker:
     def _walk(self, lease: Lease, progress) -> tuple[bytes, int, float]:
         """Walk the leased shard: its tally's bytes, its photons and the walk's seconds
         (``bench.fleet`` puts an instant fake here to load the queue alone)."""
-        # Deferred, not a cycle: workers.sweep imports torch (seconds), and building the `bssrdf`
-        # parser imports this module; only a process that runs a shard pays for it.
-        from workers.kernels import observe_compiles
-        from workers.sweep import run_task
-
         with observe_compiles(getattr(progress, "compiling", lambda _kernel, _started: None)):
             tally = run_task(self._spec(lease), lease.shard_index, progress=progress)
         return tally.to_bytes(), tally.photons, tally.elapsed_s
@@ -357,83 +351,7 @@ class Worker:
         log.info("dataset published", extra={**fields, "dataset": spec.name, "version": version, "elapsed_s": elapsed})
 
 
-# --- CLI ---
-def add_parser(subparsers) -> argparse.ArgumentParser:
-    """Add the ``worker`` subcommand to an argparse ``subparsers`` object."""
-    p = subparsers.add_parser("worker", help="claim and run shard and merge tasks from the job store",
-                              description=__doc__.split("\n\n")[0])
-    _add_arguments(p)
-    p.set_defaults(func=main)
-    return p
-
-
-def _add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--db", help="job store URL (default: BSSRDF_DATABASE_URL or the local SQLite store)")
-    p.add_argument("--storage", help="dataset storage URI (default: BSSRDF_STORAGE_URI or the local data dir)")
-    p.add_argument("--once", action="store_true", help="exit once no live job has work left that could become "
-                   "claimable (batch schedulers); a merge waiting for shards or a retry backing off keeps it")
-    p.add_argument("--max-tasks", type=int, default=None, metavar="N", help="exit after N tasks")
-    p.add_argument("--lease-seconds", type=float, default=None, metavar="S", help="lease length (default 60)")
-    p.add_argument("--heartbeat-seconds", type=float, default=None, metavar="S", help="default: lease / 4")
-    p.add_argument("--poll-seconds", type=float, default=1.0, metavar="S",
-                   help="idle wait after an empty claim, doubled per empty claim in a row up to "
-                   "--max-poll-seconds (x a random 0.5-1.5, so a fleet does not poll in step)")
-    p.add_argument("--max-poll-seconds", type=float, default=None, metavar="S",
-                   help=f"longest idle wait (default {IDLE_BACKOFF_CAP:g} x --poll-seconds)")
-    p.add_argument("--stall-seconds", type=float, default=None, metavar="S",
-                   help="a shard that reports no progress for S seconds loses its lease (default: "
-                   "BSSRDF_STALL_SECONDS, 300; the clock starts at its first report, after any compile)")
-    p.add_argument("--worker-id", default=None, help="name in leases and logs (default host:pid:random)")
-
-
-def _argument_problem(args: argparse.Namespace) -> str | None:
-    """What is wrong with the numeric options (each must be positive; the idle backoff's cap at
-    least the first wait), or None."""
-    for name in ("lease_seconds", "heartbeat_seconds", "poll_seconds", "max_poll_seconds", "stall_seconds", "max_tasks"):
-        value = getattr(args, name, None)
-        if value is not None and not value > 0:
-            return f"--{name.replace('_', '-')} must be > 0; received {value}"
-    if args.max_poll_seconds is not None and args.max_poll_seconds < args.poll_seconds:
-        return f"--max-poll-seconds must be >= --poll-seconds ({args.poll_seconds:g}); received {args.max_poll_seconds:g}"
-    return None
-
-
-def main(args: argparse.Namespace) -> int:
-    """Run a worker with parsed arguments; returns the exit status."""
-    settings = settings_or_exit()
-    problem = _argument_problem(args)
-    if problem:
-        print(f"bssrdf worker: {problem}", file=sys.stderr)
-        return 2
-    url = args.db or settings.database_url
-    try:  # only the embedded default, jobs.sqlite in the data directory, creates its directory
-        store = open_store(url, create_dir=url == sqlite_url_for(settings.data_dir), fold_batch=settings.fold_batch)
-    except StoreUnavailable as exc:
-        print(f"bssrdf worker: {exc}", file=sys.stderr)
-        return 2
-    configure_logging()
-    # One worker process per core, one torch thread each: shards are independent, so processes
-    # scale without per-step synchronisation, and the walk runs exactly as in `bssrdf simulate`.
-    import torch
-
-    torch.set_num_threads(1)
-    lease_seconds = args.lease_seconds or settings.lease_seconds
-    heartbeat = args.heartbeat_seconds or (settings.heartbeat_seconds if not args.lease_seconds else None)
-    storage = DatasetStorage(args.storage or settings.storage_uri)
-    worker = Worker(
-        store, storage, worker_id=args.worker_id, lease_seconds=lease_seconds, heartbeat_seconds=heartbeat,
-        once=args.once, max_tasks=args.max_tasks, poll_seconds=args.poll_seconds,
-        max_poll_seconds=args.max_poll_seconds,
-        stall_seconds=args.stall_seconds or settings.stall_seconds,
-        keep_shard_files=settings.keep_shard_files,
-    )
-    try:
-        return worker.run()
-    finally:
-        store.dispose()
-
-
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(prog="bssrdf worker", description=__doc__.split("\n\n")[0])
-    _add_arguments(parser)
-    sys.exit(main(parser.parse_args()))
+    from service.worker_command import run_as_script
+
+    sys.exit(run_as_script())

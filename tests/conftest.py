@@ -39,7 +39,7 @@ class WalkStats:
     @staticmethod
     def dof(result, name: str | None = None) -> int:
         """Degrees of freedom of a merged result's standard errors (units - 1: photons - 1 or
-        batches - 1, workers.tally): of quantity `name`, or the fewest of any estimator."""
+        batches - 1, workers.fold.tally): of quantity `name`, or the fewest of any estimator."""
         if name is not None:
             return result.dof(name)
         return min(result.dof(f"{e}/Rd") for e in result.estimators)

@@ -3,7 +3,7 @@
 Each claim of a job's merge task is one *round* (:func:`run_merge_task`):
 
 1. restore the fold the job store records (``jobs.folded``, ``fold_uri``: a
-   :class:`workers.sweep.JobFold` saved as a file in the job's staging area, sha256 checked),
+   :class:`workers.fold.job.JobFold` saved as a file in the job's staging area, sha256 checked),
    or start one;
 2. fold the done tasks from there on, in task order, each shard file read once and checked
    against its recorded sha256, into one float64 accumulator per medium (memory: the
@@ -22,18 +22,23 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass, field
 
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from schema import parse_spec
+from schema import SimulationSpec, parse_spec
 from service.datasets.jobfiles import JobFiles
 from service.datasets.metadata import build_metadata, metadata_bytes
 from service.datasets.storage import METADATA_FILE, DatasetStorage, StagedVersion, sha256_bytes
 from service.faults import pause_point
 from service.store import JobStore, Lease, StoredFile, StoreError
+from workers.fold.job import PART_FILES, JobFold, sweep_run_facts, target_rule, write_part, write_sweep_tables
+from workers.fold.merge import Result
+from workers.fold.output import summary, summary_head, write_tables
+from workers.fold.tally import ShardTally
 
-__all__ = ["run_merge_task", "IncompleteShards", "ResultWindow"]
+__all__ = ["run_merge_task", "MergeRound", "IncompleteShards", "ResultWindow"]
 
 
 class IncompleteShards(StoreError):
@@ -61,11 +66,6 @@ class ResultWindow:
 def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, keep_files: bool = False) -> int | None:
     """One round of the leased job's merge (module docstring); the version number if it
     published one, else None (the fold advanced and waits for more shards)."""
-    # Deferred, not a cycle: the fold imports torch (seconds), which the API process, importing
-    # this package for dataset reads, never needs.
-    from workers.sweep import JobFold, target_rule
-    from workers.tally import ShardTally
-
     t0 = time.perf_counter()
     spec = parse_spec(json.loads(lease.spec_json))
     files = JobFiles(storage, lease.job_id)
@@ -78,8 +78,8 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
         fold, parts = JobFold.from_state(spec, state, rule), dict(state.info.get("parts", {}))
     if fold.next_task != pos.folded:
         raise IncompleteShards(f"job {lease.job_id}: the fold file is at task {fold.next_task}, the job row at {pos.folded}")
+    merge_round = MergeRound(store, storage, lease, spec, files, fold, parts, t0=t0, keep_files=keep_files)
     skipped: list[range] = []
-    last = None
     folded_now = 0  # shards folded by this round
     results = ResultWindow(store, lease.job_id)
     while not fold.done:
@@ -96,18 +96,18 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
             continue
         if len(fold.skipped):
             skipped.append(fold.skipped)
-        if spec.is_sweep:  # every medium of the walk group that finished (workers.sweep.JobFold)
+        if spec.is_sweep:  # every medium of the walk group that finished (workers.fold.job.JobFold)
             for finished in fold.finished:
-                parts[str(finished.medium_index)] = _write_part(files, finished)
-        last = result
+                merge_round.write_part(finished)
+        merge_round.last = result
         if skipped and not fold.done:
             break  # commit the early stop now: its medium's remaining tasks stop being claimed
     if fold.done:
-        return _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_files)
+        return merge_round.publish()
     ref = None
     if fold.next_task != pos.folded or pos.fold is None:
         state = fold.state()
-        state.info["parts"] = parts
+        state.info["parts"] = merge_round.parts
         ref = files.write(f"fold/{fold.next_task:08d}-{lease.token}.fold", state.to_bytes())
     try:
         store.advance_fold(lease, folded=fold.next_task, fold=ref or pos.fold, skipped=skipped)
@@ -120,76 +120,87 @@ def run_merge_task(store: JobStore, storage: DatasetStorage, lease: Lease, *, ke
     return None
 
 
-def _write_part(files: JobFiles, result) -> dict[str, dict]:
-    """A finished medium's tables as a part of the job; their recorded uri, size and sha256."""
-    from workers.sweep import PART_FILES, write_part
+@dataclass
+class MergeRound:
+    """One round of a job's merge task: the lease it runs under, the job's spec and files, and
+    the fold it advances (``parts``: the recorded tables of the sweep's finished media by medium
+    index; ``last``: the result of the medium finished last).  ``t0`` is the round's start
+    (``time.perf_counter``), for the merge time the metadata records."""
 
-    directory = files.part_dir(result.medium_index)
-    write_part(result, directory, files.fs)
-    out = {}
-    for name in PART_FILES:
-        with files.fs.open_input_stream(f"{directory}/{name}") as f:
-            data = f.read()
-        out[name] = {"uri": files.part_uri(result.medium_index, name), "bytes": len(data),
-                     "sha256": sha256_bytes(data)}
-    return out
+    store: JobStore
+    storage: DatasetStorage
+    lease: Lease
+    spec: SimulationSpec
+    files: JobFiles
+    fold: JobFold
+    parts: dict[str, dict[str, dict]] = field(default_factory=dict)
+    last: Result | None = None
+    t0: float = 0.0
+    keep_files: bool = False
 
+    def write_part(self, result: Result) -> None:
+        """A finished medium's tables as a part of the job, recorded with uri, size and sha256."""
+        files = self.files
+        directory = files.part_dir(result.medium_index)
+        write_part(result, directory, files.fs)
+        out = {}
+        for name in PART_FILES:
+            with files.fs.open_input_stream(f"{directory}/{name}") as f:
+                data = f.read()
+            out[name] = {"uri": files.part_uri(result.medium_index, name), "bytes": len(data),
+                         "sha256": sha256_bytes(data)}
+        self.parts[str(result.medium_index)] = out
 
-def _read_parts(files: JobFiles, parts: dict, media: int):
-    """Each medium's (radial, bins, summary) tables in medium order, sha256 checked, one at a time."""
-    from workers.sweep import PART_FILES
+    def read_parts(self):
+        """Each medium's (radial, bins, summary) tables in medium order, sha256 checked, one at a time."""
+        for m in range(self.spec.n_media):
+            refs = self.parts[str(m)]
+            yield tuple(pq.read_table(pa.BufferReader(self.files.read(StoredFile(**refs[name]), f"medium {m} {name}")))
+                        for name in PART_FILES)
 
-    for m in range(media):
-        refs = parts[str(m)]
-        yield tuple(pq.read_table(pa.BufferReader(files.read(StoredFile(**refs[name]), f"medium {m} {name}")))
-                    for name in PART_FILES)
-
-
-def _publish(store, storage, lease, spec, fold, parts, last, t0, files, keep_files) -> int:
-    """Write the job's tables and metadata into a staging directory and publish the version."""
-    from workers.output import summary, summary_head, write_tables
-    from workers.sweep import sweep_run_facts, write_sweep_tables
-
-    job = store.get_job(lease.job_id)
-    t_fold = time.perf_counter()
-    # In the job's directory: a round killed before the publish leaves its staging directory
-    # there, and it goes with the job's files once another round publishes.
-    staged = storage.stage(spec.name, within=files.path)
-    try:
-        if spec.is_sweep:
-            names = write_sweep_tables(spec, fold.media, _read_parts(files, parts, spec.n_media), staged.path, storage.fs)
-            doc = summary_head(spec, sweep_run_facts(spec, fold.media)) | {"results_file": "summary.json"}
-            per_shard = []  # a sweep's photons are per medium in the run facts
-        else:
-            names = write_tables(last, staged.path, filesystem=storage.fs)
-            doc = summary(last)
-            per_shard = [int(i.get("photons", 0)) for i in last.shard_info]
-        t_write = time.perf_counter()
-        meta = build_metadata(
-            name=spec.name, job_id=lease.job_id, spec_json=lease.spec_json, spec_hash=job.spec_hash,
-            seed=spec.seed, shards=spec.shards,
-            photons=int(sum(m["photons"] for m in fold.media)),
-            photons_per_shard=per_shard,
-            timings={
-                "shard_walk_s_sum": float(sum(m["walk_s"] for m in fold.media)),
-                "merge_s": t_fold - t0,  # the last fold round
-                "write_s": t_write - t_fold,
-                "job_wall_s": (store.now() - job.started_at) if job.started_at else None,
-            },
-            summary=doc,
-            files=staged.checksums(list(names)),
-        )
-        blob = metadata_bytes(meta)
-        staged.write_bytes(METADATA_FILE, blob)
-        row_meta = dict(meta, metadata_sha256=sha256_bytes(blob))
-        pause_point("staged")  # tests only (service.faults)
-        version = store.complete_merge(lease, spec.name, row_meta, _Publisher(staged))
-    except BaseException:
-        staged.discard()
-        raise
-    if not keep_files:
-        files.discard()
-    return version
+    def publish(self) -> int:
+        """Write the job's tables and metadata into a staging directory and publish the version."""
+        store, storage, lease, spec, fold, last = self.store, self.storage, self.lease, self.spec, self.fold, self.last
+        job = store.get_job(lease.job_id)
+        t_fold = time.perf_counter()
+        # In the job's directory: a round killed before the publish leaves its staging directory
+        # there, and it goes with the job's files once another round publishes.
+        staged = storage.stage(spec.name, within=self.files.path)
+        try:
+            if spec.is_sweep:
+                names = write_sweep_tables(spec, fold.media, self.read_parts(), staged.path, storage.fs)
+                doc = summary_head(spec, sweep_run_facts(spec, fold.media)) | {"results_file": "summary.json"}
+                per_shard = []  # a sweep's photons are per medium in the run facts
+            else:
+                names = write_tables(last, staged.path, filesystem=storage.fs)
+                doc = summary(last)
+                per_shard = [int(i.get("photons", 0)) for i in last.shard_info]
+            t_write = time.perf_counter()
+            meta = build_metadata(
+                name=spec.name, job_id=lease.job_id, spec_json=lease.spec_json, spec_hash=job.spec_hash,
+                seed=spec.seed, shards=spec.shards,
+                photons=int(sum(m["photons"] for m in fold.media)),
+                photons_per_shard=per_shard,
+                timings={
+                    "shard_walk_s_sum": float(sum(m["walk_s"] for m in fold.media)),
+                    "merge_s": t_fold - self.t0,  # the last fold round
+                    "write_s": t_write - t_fold,
+                    "job_wall_s": (store.now() - job.started_at) if job.started_at else None,
+                },
+                summary=doc,
+                files=staged.checksums(list(names)),
+            )
+            blob = metadata_bytes(meta)
+            staged.write_bytes(METADATA_FILE, blob)
+            row_meta = dict(meta, metadata_sha256=sha256_bytes(blob))
+            pause_point("staged")  # tests only (service.faults)
+            version = store.complete_merge(lease, spec.name, row_meta, _Publisher(staged))
+        except BaseException:
+            staged.discard()
+            raise
+        if not self.keep_files:
+            self.files.discard()
+        return version
 
 
 class _Publisher:

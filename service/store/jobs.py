@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import uuid
 from functools import cached_property
-from typing import Protocol
 
 import sqlalchemy as sa
 from sqlalchemy.exc import IntegrityError
@@ -18,7 +17,7 @@ from service.store.records import JobProgress, JobRecord, Submission
 from service.store.states import ACTIVE_JOB_STATES, TERMINAL_JOB_STATES, JobState, TaskKind, TaskState
 from service.store.tables import dataset_versions, idempotency_keys, jobs, tasks
 
-__all__ = ["JobsMixin", "SpecLike"]
+__all__ = ["JobsMixin"]
 
 _COUNTS = ("done", "running", "stalled", "failed", "cancelled", "photons", "photons_done", "compiling")
 """Columns of the shard counts in :meth:`JobsMixin._progress_statement`."""
@@ -35,23 +34,10 @@ def _media_counts(spec_json: str, folded: int, total: int, per_group: int) -> di
     return {"media_total": sum(groups), "media_merged": sum(groups[:groups_done])}
 
 
-class SpecLike(Protocol):
-    """What the store needs of a ``schema.SimulationSpec``."""
-
-    name: str
-    shards: int
-
-    def task_count(self) -> int: ...  # shard tasks: media x shards (schema.media)
-
-    def canonical_json(self) -> str: ...
-
-    def spec_hash(self) -> str: ...
-
-
 class JobsMixin(StoreBase):
     """Job-level operations."""
 
-    def submit(self, spec: SpecLike, *, idempotency_key: str | None = None) -> JobRecord:
+    def submit(self, spec: SimulationSpec, *, idempotency_key: str | None = None) -> JobRecord:
         """Store a job: its shard tasks (queued; media x shards) plus one merge task (waiting); the new job.
 
         With an ``idempotency_key``, submitting again returns the job first stored under that key
@@ -61,7 +47,7 @@ class JobsMixin(StoreBase):
         """
         return self.submit_unique(spec, idempotency_key=idempotency_key, force=True).job
 
-    def submit_unique(self, spec: SpecLike, *, idempotency_key: str | None = None,
+    def submit_unique(self, spec: SimulationSpec, *, idempotency_key: str | None = None,
                       force: bool = False) -> Submission:
         """Like :meth:`submit`, but a spec whose hash (seed included) matches a published
         version or a live job returns that job instead of a new one (``Submission.existing``
@@ -121,14 +107,14 @@ class JobsMixin(StoreBase):
         ).scalar_one_or_none()
         return None if live is None else (live, "job")
 
-    def _insert_job(self, conn, job_id: str, spec: SpecLike, spec_json: str, spec_hash: str,
+    def _insert_job(self, conn, job_id: str, spec: SimulationSpec, spec_json: str, spec_hash: str,
                     idempotency_key: str | None, now) -> None:
         conn.execute(
             sa.insert(jobs).values(
                 id=job_id, name=spec.name, spec_json=spec_json, spec_hash=spec_hash,
                 shards=spec.task_count(), state=JobState.QUEUED, idempotency_key=idempotency_key,
                 created_at=now, updated_at=now,
-                photons_total=job_photons(spec) if isinstance(spec, SimulationSpec) else None,
+                photons_total=job_photons(spec),
             )
         )
         self._insert_shard_tasks(conn, job_id, spec.task_count())
@@ -159,7 +145,7 @@ class JobsMixin(StoreBase):
         return None if row is None else JobRecord.from_row(row)
 
     @staticmethod
-    def _check_same_spec(job: JobRecord, spec: SpecLike, key: str) -> JobRecord:
+    def _check_same_spec(job: JobRecord, spec: SimulationSpec, key: str) -> JobRecord:
         if job.spec_hash != spec.spec_hash():
             raise IdempotencyConflict(
                 f"idempotency key {key!r} already names job {job.id} with spec hash "

@@ -1,7 +1,7 @@
 """Searched bin lookups: the plain reference the walk's fused lookups are tested against.
 
-The walk bins events with computed uniform edges (:func:`workers.binning.uniform_index`) and a
-branchless binary search (:func:`workers.harvest.count_le`); these look the values up in the
+The walk bins events with computed uniform edges (:func:`workers.walk.binning.uniform_index`) and a
+branchless binary search (:func:`workers.walk.harvest.count_le`); these look the values up in the
 stored float64 edges with torch.searchsorted / bucketize, the obvious way, for the tests only.
 """
 
@@ -13,7 +13,7 @@ import math
 
 import torch
 
-from workers.binning import BinLayout
+from workers.fold.configs import BinLayout
 
 __all__ = ["edge_index", "azimuth_edge_index", "SearchedLookup", "searched"]
 
@@ -40,7 +40,7 @@ def azimuth_edge_index(angle: torch.Tensor, edges: torch.Tensor) -> torch.Tensor
 
 @dataclass(frozen=True)
 class SearchedLookup:
-    """Bins of a :class:`workers.binning.BinLayout` by searching its stored edges."""
+    """Bins of a :class:`workers.walk.binning.BinLayout` by searching its stored edges."""
 
     layout: BinLayout
 

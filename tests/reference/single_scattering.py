@@ -1,6 +1,6 @@
 """Exact single-scattering reflectance of a semi-infinite HG medium, by quadrature.
 
-Geometry and conventions (workers/conventions.py): medium z < 0, surface z = 0, outward
+Geometry and conventions (workers/walk/conventions.py): medium z < 0, surface z = 0, outward
 normal +z, outside index 1, relative index ``eta``. The incoming ray travels along
 (sin ti, 0, -cos ti) and hits the origin; it refracts into d0 = (sin tt, 0, -mu_t)
 with sin tt = sin ti / eta, and carries the power 1 - Fr(cos ti, eta). Extinction

@@ -1,7 +1,7 @@
 """Progress tells the truth while a kernel compiles: the worker reports the phase in a heartbeat
 sent at once (not at the next period), the progress read shows it (SQLite and PostgreSQL), the
 stall clock is held through a compile, the CLI line says "compiling ..." instead of "0 photons/s",
-and :func:`workers.kernels.observe_compiles` reports a real compile (and not a load)."""
+and :func:`workers.walk.kernels.observe_compiles` reports a real compile (and not a load)."""
 
 from __future__ import annotations
 
@@ -105,7 +105,7 @@ def test_the_cli_line_says_compiling_until_photons_arrive():
 def test_observe_compiles_reports_a_compile_and_not_a_load(tmp_path, monkeypatch):
     import torch
 
-    from workers import kernels
+    from workers.walk import kernels
 
     monkeypatch.setenv("BSSRDF_KERNEL_CACHE", str(tmp_path / "kernels"))
     events, lock = [], threading.Lock()

@@ -11,7 +11,7 @@ from collections import Counter
 from pathlib import Path
 
 from service.store import JobState, TaskKind
-from tests.service.conftest import FakeSpec
+from tests.service.conftest import queue_spec
 from tests.support.files import stored
 
 REPO = Path(__file__).resolve().parents[2]
@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def test_four_processes_race_over_fifty_tasks(store, db_url):
     # 5 jobs x 9 shards + 5 merges = 50 tasks
-    jobs = [store.submit(FakeSpec(f"race{i}", shards=9)) for i in range(5)]
+    jobs = [store.submit(queue_spec(f"race{i}", shards=9)) for i in range(5)]
     start_at = time.time() + 2.0
     procs = [
         subprocess.Popen(
@@ -46,7 +46,7 @@ def test_four_processes_race_over_fifty_tasks(store, db_url):
 def test_threads_race_without_double_claims(store, db_url):
     from service.store import JobStore
 
-    store.submit(FakeSpec(shards=40))
+    store.submit(queue_spec(shards=40))
     claimed: list[int] = []
     lock = threading.Lock()
 
@@ -85,7 +85,7 @@ def test_concurrent_publishes_of_one_name_all_get_consecutive_versions(store, db
 
     n = 16  # more than the 10 version-number retries the allocation once had
     for i in range(n):
-        store.submit(FakeSpec("same-name", shards=1, seed=i))
+        store.submit(queue_spec("same-name", shards=1, seed=i))
     leases = []
     for _ in range(n):  # each shard done, then its merge (claimed first) leased
         shard = store.claim("prep", 60)

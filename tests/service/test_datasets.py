@@ -12,12 +12,12 @@ import pytest
 from service.datasets import DatasetStorage, open_version
 from service.datasets.metadata import metadata_bytes
 from service.store import ChecksumMismatch, JobState, LeaseLost, VersionNotFound
-from tests.service.conftest import FakeSpec
+from tests.service.conftest import queue_spec
 from tests.support.files import stored
 
 
 def merge_lease(store, name="ds", lease_seconds=30):
-    store.submit(FakeSpec(name, shards=1))
+    store.submit(queue_spec(name, shards=1))
     shard = store.claim("w", 30)
     store.complete_shard(shard, stored(b"tally"), photons=5, elapsed_s=0.1)
     return store.claim("w", lease_seconds)

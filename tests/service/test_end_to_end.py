@@ -41,9 +41,9 @@ def tiny_spec(name: str, photons: int, shards: int):
 
 
 def reference_bytes(spec, out_dir: Path) -> dict[str, bytes]:
-    from workers.merge import merge
-    from workers.output import write_tables
-    from workers.shard import run_shard
+    from workers.fold.merge import merge
+    from workers.fold.output import write_tables
+    from workers.run.shard import run_shard
 
     tallies = [run_shard(spec, i) for i in range(spec.shards)]
     write_tables(merge(spec, tallies), str(out_dir))

@@ -10,7 +10,7 @@ import sqlalchemy as sa
 import service.store.lifecycle as lifecycle
 from service.store import JobNotFound, StoredFile, TaskKind, TaskState
 from service.store.tables import shard_results, tasks
-from tests.service.conftest import FakeSpec
+from tests.service.conftest import queue_spec
 
 
 def _rows(store, table, job_id):
@@ -19,7 +19,7 @@ def _rows(store, table, job_id):
 
 
 def test_tasks_are_created_in_task_order_with_their_defaults(store):
-    job = store.submit(FakeSpec(name="big", shards=1234))
+    job = store.submit(queue_spec(name="big", shards=1234))
     with store._read() as conn:
         rows = conn.execute(sa.select(tasks).where(tasks.c.job_id == job.id).order_by(tasks.c.id)).all()
     assert [r.shard_index for r in rows] == [*range(1234), None]
@@ -32,8 +32,8 @@ def test_tasks_are_created_in_task_order_with_their_defaults(store):
 def test_a_large_job_is_deleted_in_chunks_and_completely(store, monkeypatch):
     monkeypatch.setattr(lifecycle, "DELETE_CHUNK", 100)
     monkeypatch.setattr(store, "fold_batch", 10**6)  # no merge round in between: shards only
-    job = store.submit(FakeSpec(name="big", shards=1050))
-    other = store.submit(FakeSpec(name="other", shards=5))
+    job = store.submit(queue_spec(name="big", shards=1050))
+    other = store.submit(queue_spec(name="other", shards=5))
     for _ in range(250):  # the older job's tasks are claimed first: 250 results of big's
         lease = store.claim("w", 60)
         store.complete_shard(lease, StoredFile(f"x/{lease.task_id}", 1, "0" * 64), photons=1, elapsed_s=0.0)

@@ -16,7 +16,7 @@ from service.datasets import DatasetStorage, JobFiles
 from service.store import JobState, JobStore, RetryPolicy, TaskKind, VersionNotFound
 from service.store.tables import tasks
 from service.worker import Worker
-from workers.shard import run_shard
+from workers.run.shard import run_shard
 
 SHARDS = 2
 

@@ -7,7 +7,7 @@ import time
 import pytest
 
 from service.store import JobState, LeaseLost, TaskKind, TaskState, decide_retry, RetryPolicy
-from tests.service.conftest import FakeSpec
+from tests.service.conftest import queue_spec
 from tests.support.files import stored
 
 SHORT = 0.2  # seconds: a lease that expires within the test
@@ -21,8 +21,8 @@ def finish_shards(store, job_id, n):
 
 
 def test_claim_order_oldest_job_first_then_shard_index(store):
-    a = store.submit(FakeSpec("a", shards=2))
-    b = store.submit(FakeSpec("b", shards=2))
+    a = store.submit(queue_spec("a", shards=2))
+    b = store.submit(queue_spec("b", shards=2))
     got = [(l.job_id, l.kind, l.shard_index) for l in iter(lambda: store.claim("w", 30), None)]
     # Merge tasks wait for their shards, so only the four shards are claimable.
     assert got == [(a.id, "shard", 0), (a.id, "shard", 1), (b.id, "shard", 0), (b.id, "shard", 1)]
@@ -30,7 +30,7 @@ def test_claim_order_oldest_job_first_then_shard_index(store):
 
 
 def test_merge_task_is_gated_on_all_shards(store):
-    job = store.submit(FakeSpec(shards=3))
+    job = store.submit(queue_spec(shards=3))
     leases = [store.claim("w", 30) for _ in range(3)]
     assert store.claim("w", 30) is None
     for lease in leases[:2]:
@@ -44,7 +44,7 @@ def test_merge_task_is_gated_on_all_shards(store):
 
 
 def test_expired_lease_is_reclaimed_with_new_token_and_counts_as_attempt(store):
-    store.submit(FakeSpec(shards=1))
+    store.submit(queue_spec(shards=1))
     first = store.claim("dead", SHORT)
     assert store.claim("w2", 30) is None  # lease still live
     time.sleep(SHORT + 0.1)
@@ -55,7 +55,7 @@ def test_expired_lease_is_reclaimed_with_new_token_and_counts_as_attempt(store):
 
 
 def test_stale_commit_is_refused_and_nothing_counted_twice(store):
-    job = store.submit(FakeSpec(shards=1))
+    job = store.submit(queue_spec(shards=1))
     stale = store.claim("slow", SHORT)
     time.sleep(SHORT + 0.1)
     fresh = store.claim("fast", 30)
@@ -69,7 +69,7 @@ def test_stale_commit_is_refused_and_nothing_counted_twice(store):
 
 
 def test_stale_commit_refused_even_before_the_done_commit(store):
-    job = store.submit(FakeSpec(shards=1))
+    job = store.submit(queue_spec(shards=1))
     stale = store.claim("slow", SHORT)
     time.sleep(SHORT + 0.1)
     fresh = store.claim("fast", 30)
@@ -80,7 +80,7 @@ def test_stale_commit_refused_even_before_the_done_commit(store):
 
 
 def test_heartbeat_extends_live_lease_and_reports_lost_lease(store):
-    job = store.submit(FakeSpec(shards=1))
+    job = store.submit(queue_spec(shards=1))
     lease = store.claim("w1", 0.5)
     for _ in range(3):
         time.sleep(0.25)
@@ -94,7 +94,7 @@ def test_heartbeat_extends_live_lease_and_reports_lost_lease(store):
 
 
 def test_release_requeues_without_counting_an_attempt(store):
-    store.submit(FakeSpec(shards=1))
+    store.submit(queue_spec(shards=1))
     lease = store.claim("w1", 30)
     assert store.release(lease)
     again = store.claim("w2", 30)
@@ -103,7 +103,7 @@ def test_release_requeues_without_counting_an_attempt(store):
 
 
 def test_failures_retry_then_fail_job_with_error_kept(store):
-    job = store.submit(FakeSpec(shards=2))
+    job = store.submit(queue_spec(shards=2))
     for attempt in (1, 2, 3):
         lease = store.claim("w", 30)
         assert lease.shard_index == 0 and lease.attempts == attempt
@@ -126,7 +126,7 @@ def test_a_final_failure_fails_the_job_at_the_first_attempt(store):
 
 
 def test_expired_leases_exhaust_attempts_and_fail_job(store):
-    job = store.submit(FakeSpec(shards=1))
+    job = store.submit(queue_spec(shards=1))
     for _ in range(3):
         assert store.claim("dying", SHORT) is not None
         time.sleep(SHORT + 0.1)
@@ -149,7 +149,7 @@ def test_pending_tasks_counts_what_can_still_become_claimable(store):
     # has_pending_tasks (the --once poll) agrees with the count at every step.
     assert store.pending_tasks() == 0
     assert store.has_pending_tasks() is False
-    job = store.submit(FakeSpec(shards=2))
+    job = store.submit(queue_spec(shards=2))
     assert store.pending_tasks() == 3  # two shards and the waiting merge
     assert store.has_pending_tasks() is True
     a, b = store.claim("w", 30), store.claim("w", 30)
@@ -165,7 +165,7 @@ def test_pending_tasks_counts_what_can_still_become_claimable(store):
 
 
 def test_cancel_stops_claims_and_refuses_late_commits(store):
-    job = store.submit(FakeSpec(shards=3))
+    job = store.submit(queue_spec(shards=3))
     lease = store.claim("w", 30)
     cancelled = store.cancel(job.id)
     assert cancelled.state == JobState.CANCELLED
@@ -180,19 +180,19 @@ def test_cancel_stops_claims_and_refuses_late_commits(store):
 
 
 def test_idempotency_key_returns_same_job(store):
-    a = store.submit(FakeSpec("x", seed=1), idempotency_key="k1")
-    b = store.submit(FakeSpec("x", seed=1), idempotency_key="k1")
-    c = store.submit(FakeSpec("x", seed=1))
+    a = store.submit(queue_spec("x", seed=1), idempotency_key="k1")
+    b = store.submit(queue_spec("x", seed=1), idempotency_key="k1")
+    c = store.submit(queue_spec("x", seed=1))
     assert a.id == b.id != c.id
     from service.store import IdempotencyConflict
 
     with pytest.raises(IdempotencyConflict, match="new key"):
-        store.submit(FakeSpec("x", seed=2), idempotency_key="k1")
+        store.submit(queue_spec("x", seed=2), idempotency_key="k1")
     assert len(store.list_jobs()) == 2
 
 
 def test_progress_counts_and_eta(store):
-    job = store.submit(FakeSpec(shards=4))
+    job = store.submit(queue_spec(shards=4))
     finish_shards(store, job.id, 2)
     running = store.claim("w", 30)
     store.heartbeat(running, 30, photons=50)
@@ -212,7 +212,7 @@ def test_retry_decision_formula():
 def test_fold_reads_done_results_a_window_at_a_time(store):
     from service.datasets import ResultWindow
 
-    job = store.submit(FakeSpec(shards=7))
+    job = store.submit(queue_spec(shards=7))
     leases = {lease.shard_index: lease for lease in (store.claim("w", 30) for _ in range(7))}
     for i in (0, 1, 2, 4, 5, 6):  # task 3 still running
         store.complete_shard(leases[i], stored(f"r{i}".encode()), photons=1, elapsed_s=0.0)

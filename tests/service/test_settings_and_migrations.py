@@ -85,17 +85,17 @@ def test_migration_0006_keeps_the_keys_of_existing_jobs(db_url):
 
     from service.store import IdempotencyConflict, JobStore
     from service.store.store import MIGRATIONS_DIR
-    from tests.service.conftest import FakeSpec
+    from tests.service.conftest import queue_spec
 
     store = JobStore(db_url)
-    job = store.submit(FakeSpec("x", seed=1), idempotency_key="k-old")
+    job = store.submit(queue_spec("x", seed=1), idempotency_key="k-old")
     cfg = Config()
     cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
     with store.engine.begin() as conn:
         cfg.attributes["connection"] = conn
         command.downgrade(cfg, "0005_task_phase")
     store.migrate()
-    assert store.submit(FakeSpec("x", seed=1), idempotency_key="k-old").id == job.id
+    assert store.submit(queue_spec("x", seed=1), idempotency_key="k-old").id == job.id
     with pytest.raises(IdempotencyConflict, match="k-old"):
-        store.submit(FakeSpec("x", seed=2), idempotency_key="k-old")
+        store.submit(queue_spec("x", seed=2), idempotency_key="k-old")
     store.dispose()

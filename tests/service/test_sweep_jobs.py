@@ -36,7 +36,7 @@ def sweep_spec():
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
-    from workers.simulate import simulate_sweep
+    from workers.run.simulate import simulate_sweep
 
     out = tmp_path_factory.mktemp("reference")
     simulate_sweep(sweep_spec(), str(out), threads=1)
@@ -145,7 +145,7 @@ def test_two_workers_on_an_s3_store_give_the_same_bytes(tmp_path, s3_uri, refere
 def test_shared_walks_through_the_service_give_the_simulate_bytes(tmp_path):
     """A job of shared walk groups (2 groups x 3 shards, a group folded and stopped as one) on two
     workers: the same bytes as `bssrdf simulate`."""
-    from workers.simulate import simulate_sweep
+    from workers.run.simulate import simulate_sweep
 
     spec = shared_spec()
     assert spec.walk_groups() == [(0, 1), (2, 3)] and spec.task_count() == 6

@@ -10,7 +10,7 @@ from sqlalchemy.exc import OperationalError
 from service.datasets import DatasetStorage, JobFiles
 from service.store import JobStore, TaskState
 from service.worker import Worker
-from tests.service.conftest import FakeSpec
+from tests.service.conftest import queue_spec
 
 
 def down() -> OperationalError:
@@ -56,7 +56,7 @@ class InstantWorker(Worker):
 def setup(tmp_path):
     store = FlakyStore(f"sqlite:///{tmp_path / 'jobs.sqlite'}")
     storage = DatasetStorage(str(tmp_path / "data"))
-    job = store.submit(FakeSpec(shards=1))
+    job = store.submit(queue_spec(shards=1))
     worker = InstantWorker(store, storage, heartbeat_seconds=30)
     worker.stopping.wait = lambda seconds: False  # no real back-off sleeps in the test
     yield store, storage, job, worker

@@ -46,7 +46,7 @@ def test_a_walk_that_progresses_keeps_its_lease(store, fake_spec):
 
 
 def test_once_waits_for_a_merge_that_waits_for_another_worker(store, tmp_path):
-    from workers.shard import run_shard
+    from workers.run.shard import run_shard
 
     spec = parse_spec(TINY_SPEC)
     job = store.submit(spec)

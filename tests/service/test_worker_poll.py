@@ -8,7 +8,8 @@ import sys
 
 import pytest
 
-from service.worker import IDLE_BACKOFF_CAP, Worker
+from service.settings import IDLE_BACKOFF_CAP
+from service.worker import Worker
 from tests.service.test_end_to_end import REPO
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 
-from workers.tally import ShardTally
+from workers.fold.tally import ShardTally
 
 __all__ = ["tally_digest"]
 

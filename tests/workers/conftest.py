@@ -21,8 +21,8 @@ ARRAYS_SPEC = {
 def arrays_source(tmp_path_factory):
     """The ExportSource of a measured ARRAYS_SPEC dataset."""
     from workers.exports.source import ExportSource
-    from workers.output import write_tables
-    from workers.simulate import simulate
+    from workers.fold.output import write_tables
+    from workers.run.simulate import simulate
 
     out = tmp_path_factory.mktemp("arrays")
     write_tables(simulate(parse_spec(ARRAYS_SPEC), threads=1), str(out))

@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from workers.bench import _arguments, bench_one
+from workers.measure.bench import _arguments, bench_one
 
 
 def test_bench_reports_the_median_of_its_runs():

@@ -1,8 +1,8 @@
-"""Tests of the bin geometry and lookup (workers/binning.py) on hand-written layouts.
+"""Tests of the bin geometry and lookup (workers/walk/binning.py) on hand-written layouts.
 
 Areas and solid angles against their closed forms, equal-solid-angle directional bins by a
 chi-square on isotropic directions, half-open [lo, hi) lookup at exact edges, angle wrapping,
-and the outgoing azimuth measured from the radial direction (workers/conventions.py, "Angles of a bin").
+and the outgoing azimuth measured from the radial direction (workers/walk/conventions.py, "Angles of a bin").
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ import torch
 from schema import azimuth_edges, uniform_edges
 from tests.support.stats import assert_chi2
 from tests.reference.binning import azimuth_edge_index, edge_index, searched
-from workers.binning import TWO_PI, BinLayout, _edge_function, azimuth_index, outgoing_azimuth, uniform_index, wrap_angle
+from workers.fold.configs import BinLayout
+from workers.walk.binning import TWO_PI, _edge_function, azimuth_index, outgoing_azimuth, uniform_index, wrap_angle
 
 # Two channels with different radial edges (mm), same bin count.
 RADIAL = np.array(

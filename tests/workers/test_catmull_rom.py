@@ -1,4 +1,4 @@
-"""Catmull-Rom splines (workers.catmull_rom): interpolation, integration against quadrature,
+"""Catmull-Rom splines (workers.models.catmull_rom): interpolation, integration against quadrature,
 inversion, and the 2-D sampler against its own density (chi-square)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from scipy import integrate
 
 from tests.support.stats import assert_samples_match_pdf
-from workers.catmull_rom import (
+from workers.models.catmull_rom import (
     catmull_rom,
     catmull_rom_weights,
     integrate_catmull_rom,

@@ -1,4 +1,4 @@
-"""Diffusion models (workers.diffusion) against closed forms, independent quadrature, the exact
+"""Diffusion models (workers.models.diffusion) against closed forms, independent quadrature, the exact
 single-scattering reference and the published fits they replace."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from scipy import integrate
 from tests.reference.fresnel import fresnel_reflectance_array
 from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
 from tests.reference.single_scattering import single_scattering_radial
-from workers.diffusion import (
+from workers.models.diffusion import (
     albedo_from_reduced,
     burley_reduced_albedo,
     burley_total_rd,
@@ -34,7 +34,7 @@ ETAS = [0.7, 0.9, 1.0, 1.1, 1.3, 1.5, 2.0]
 @pytest.mark.parametrize("eta", ETAS)
 def test_fresnel_reflectance_equals_the_reference(eta):
     cos = np.concatenate([np.linspace(0.0, 1.0, 501), [1e-12, 0.5 ** 0.5]])
-    if eta == 1.0:  # no interface: nothing reflects, grazing included (as workers.optics)
+    if eta == 1.0:  # no interface: nothing reflects, grazing included (as workers.walk.optics)
         assert np.all(fresnel_reflectance(cos, eta) == 0.0)
         return
     np.testing.assert_allclose(fresnel_reflectance(cos, eta), fresnel_reflectance_array(cos, eta), rtol=1e-12, atol=1e-15)

@@ -1,4 +1,4 @@
-"""workers.efficiency: rows per (component, r, theta_s) bin, efficiencies from the runs' own
+"""workers.measure.efficiency: rows per (component, r, theta_s) bin, efficiencies from the runs' own
 standard errors and CPU time, and the per-bin summary of the hybrid's bar."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 
-from workers.efficiency import ESTIMATORS, efficiency, main, table, worst_hybrid_ratio
+from workers.measure.efficiency import ESTIMATORS, efficiency, main, table, worst_hybrid_ratio
 
 
 def test_efficiency_rows_per_spatial_bin_and_the_summary():

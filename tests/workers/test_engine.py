@@ -10,9 +10,9 @@ _SCRIPT = """
 import json
 from torch._inductor.codecache import CppPythonBindingsCodeCache as Cache
 before = Cache.call_entry_function
-import workers, workers.walk, workers.shard, workers.connections, workers.harvest, workers.kernels
+import workers, workers.walk.walk, workers.run.shard, workers.walk.connections, workers.walk.harvest, workers.walk.kernels
 after_import = Cache.call_entry_function
-from workers.engine import init_engine
+from workers.walk.engine import init_engine
 init_engine(); init_engine()
 print(json.dumps([before, after_import, Cache.call_entry_function]))
 """

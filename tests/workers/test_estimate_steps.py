@@ -12,7 +12,7 @@ import pytest
 
 from schema import parse_spec
 from schema.estimate import steps_per_photon
-from workers.shard import run_shard
+from workers.run.shard import run_shard
 
 MEDIA = {
     "M1": ({"sigma_a": 0.1, "sigma_s": 9.9, "g": 0.9, "eta": 1.3}, 600),

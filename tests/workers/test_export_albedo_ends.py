@@ -19,7 +19,7 @@ from workers.exports.pbrt import pbrt_tables
 from workers.exports.pbrt_io import read_pbrt
 from workers.exports.profiles import summary_rows
 from workers.exports.source import ExportSource
-from workers.simulate import simulate_sweep
+from workers.run.simulate import simulate_sweep
 
 ENDS = {
     "name": "albedo-ends", "sweep": {"albedo": {"count": 3, "spacing": "pbrt"}, "g": [0.0], "eta": [1.33]},

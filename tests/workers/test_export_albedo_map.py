@@ -15,9 +15,9 @@ import pytest
 
 from schema import parse_spec
 from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
-from workers.diffusion import burley_total_rd, dipole_total_rd
+from workers.models.diffusion import burley_total_rd, dipole_total_rd
 from workers.exports import write_export
-from workers.catmull_rom import invert_catmull_rom
+from workers.models.catmull_rom import invert_catmull_rom
 from workers.exports.albedo_map import (
     COLUMNS,
     albedo_for_reflectance,
@@ -27,8 +27,8 @@ from workers.exports.albedo_map import (
     pchip,
 )
 from workers.exports.source import ExportError, ExportSource
-from workers.output import write_tables
-from workers.simulate import simulate
+from workers.fold.output import write_tables
+from workers.run.simulate import simulate
 
 ALBEDOS = (0.5, 0.9, 0.98)
 SPEC = {

@@ -12,8 +12,8 @@ from scipy import integrate
 from scipy import stats as sps
 
 from schema.bins import pbrt_radial_edges, pbrt_radius_nodes
-from workers.catmull_rom import bin_integral_matrix, integrate_catmull_rom, negative_mass
-from workers.diffusion import pbd_rd
+from workers.models.catmull_rom import bin_integral_matrix, integrate_catmull_rom, negative_mass
+from workers.models.diffusion import pbd_rd
 from workers.exports.conserving import TAIL_RATIO, conserving_nodes, interval_minima
 from workers.exports.nodes import node_values
 

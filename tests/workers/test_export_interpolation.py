@@ -16,13 +16,13 @@ from scipy import integrate
 
 from schema import parse_spec
 from tests.support.stats import assert_samples_match_pdf
-from workers.catmull_rom import catmull_rom, integrate_catmull_rom
+from workers.models.catmull_rom import catmull_rom, integrate_catmull_rom
 from workers.exports.conserving import interval_minima
 from workers.exports.interpolation import NEGLIGIBLE_NEGATIVE, RANGE_SAMPLES, interpolated_fraction
 from workers.exports.pbrt import pbrt_tables
 from workers.exports.source import ExportSource
-from workers.simulate import simulate_sweep
-from workers.tabulated import pdf_sr, sample_sr
+from workers.run.simulate import simulate_sweep
+from workers.models.tabulated import pdf_sr, sample_sr
 
 README_SPEC = json.loads((Path(__file__).resolve().parents[2] / "examples" / "pbrt-sweep.json").read_text())
 

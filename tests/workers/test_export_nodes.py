@@ -11,7 +11,7 @@ import pytest
 from scipy import integrate
 
 from schema.bins import pbrt_radial_edges, pbrt_radius_nodes
-from workers.diffusion import pbd_multiple, pbd_rd
+from workers.models.diffusion import pbd_multiple, pbd_rd
 from workers.exports.nodes import check_pbrt_edges, node_values
 
 EDGES = pbrt_radial_edges(64)

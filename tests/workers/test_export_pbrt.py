@@ -16,14 +16,14 @@ from scipy import integrate
 from schema import parse_spec
 from schema.bins import pbrt_radial_edges
 from tests.support.stats import assert_samples_match_pdf
-from workers.catmull_rom import catmull_rom
+from workers.models.catmull_rom import catmull_rom
 from workers.exports.pbrt import pbrt_tables, write_pbrt
 from workers.exports.pbrt_io import read_pbrt
 from workers.exports.profiles import radial_profiles
 from workers.exports.source import ExportError, ExportSource
-from workers.output import write_tables
-from workers.simulate import simulate
-from workers.tabulated import pdf_sr, r_max, sample_sr
+from workers.fold.output import write_tables
+from workers.run.simulate import simulate
+from workers.models.tabulated import pdf_sr, r_max, sample_sr
 
 # Four albedos sharing (g, eta) as four channels of unit extinction: a small pbrt table.
 PBRT_SPEC = {

@@ -26,8 +26,8 @@ from workers.exports.pbrt import pbrt_tables
 from workers.exports.profiles import radial_profiles, summary_rows
 from workers.exports.rho_eff import disjoint_stderr
 from workers.exports.source import ExportSource
-from workers.output import write_tables
-from workers.simulate import simulate
+from workers.fold.output import write_tables
+from workers.run.simulate import simulate
 
 ALBEDOS = (0.5, 0.8, 0.95)
 # Three albedos as three channels of one medium with sigma_t = 1: one walk, one pbrt table.
@@ -72,7 +72,7 @@ def test_rho_eff_equals_the_h_function_plane_albedo(exported, walk_stats):
     source, t = exported
     assert all(r["R_spec"] == 0.0 for r in summary_rows(source.tables["summary"]).values())
     assert np.all(t.rho_eff_stderr / t.rho_eff < 0.006)  # resolves the normalisation to ~0.5 %
-    _check_against_exact(t, ALBEDOS, SPEC["photons"] - 1, walk_stats)  # photon-unit errors (workers.tally)
+    _check_against_exact(t, ALBEDOS, SPEC["photons"] - 1, walk_stats)  # photon-unit errors (workers.fold.tally)
 
 
 SLOW_ALBEDOS = (0.5, 0.9, 0.99, 0.999)
@@ -85,8 +85,8 @@ SLOW_SPEC = {
 _SIMULATE = """
 import sys
 from schema import SimulationSpec
-from workers.output import write_tables
-from workers.simulate import simulate
+from workers.fold.output import write_tables
+from workers.run.simulate import simulate
 write_tables(simulate(SimulationSpec.model_validate_json(sys.argv[1]), threads=2), sys.argv[2])
 """
 

@@ -22,7 +22,7 @@ pytest.importorskip("matplotlib", reason="the plots export needs the plot extra 
 
 from PIL import Image  # noqa: E402  (matplotlib's own dependency)
 
-from workers.diffusion import dipole_rd, pbd_multiple, pbd_rd, pbd_single  # noqa: E402
+from workers.models.diffusion import dipole_rd, pbd_multiple, pbd_rd, pbd_single  # noqa: E402
 from workers.exports import MANIFEST, write_export  # noqa: E402
 from workers.exports.plots import figures  # noqa: E402
 
@@ -83,7 +83,7 @@ def test_albedo_map_figure_when_albedos_share_g_and_eta(arrays_source, tmp_path)
 
 CHANNELS = {"R": dict(sigma_a=0.2, sigma_s=1.8, g=0.0), "G": dict(sigma_a=0.05, sigma_s=0.95, g=0.7)}  # ARRAYS_SPEC
 ETA = 1.4
-R_SPEC = ((ETA - 1) / (ETA + 1)) ** 2  # Fresnel at normal incidence, independent of workers.optics
+R_SPEC = ((ETA - 1) / (ETA + 1)) ** 2  # Fresnel at normal incidence, independent of workers.walk.optics
 
 
 def _gids(svg_path) -> set[str]:
@@ -98,7 +98,7 @@ def _line(fig, gid):
 def test_rd_figures_draw_the_data_and_both_models_per_channel(arrays_source, tmp_path):
     """At normal incidence every channel's Rd panel holds its measured points and photon beam
     diffusion (every component), and the classical dipole (multiple, total): present in the SVG
-    under their ids, and the models' curves equal (1 - R_spec) times workers.diffusion's
+    under their ids, and the models' curves equal (1 - R_spec) times workers.models.diffusion's
     profiles for the channel's own coefficients at the plotted radii, from the first to the last
     bin centre (single scattering of channel R resolves one bin only at 400 photons: its models
     are drawn all the same)."""

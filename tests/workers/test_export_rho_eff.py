@@ -12,14 +12,14 @@ import pytest
 
 from schema import parse_spec
 from schema.bins import pbrt_radius_nodes
-from workers.catmull_rom import integrate_catmull_rom
+from workers.models.catmull_rom import integrate_catmull_rom
 from workers.exports.pbrt import pbrt_tables
 from workers.exports.profiles import radial_profiles, summary_rows
 from workers.exports.conserving import conserving_nodes
 from workers.exports.rho_eff import disjoint_stderr, integration_weights
 from workers.exports.source import ExportSource
-from workers.output import write_tables
-from workers.simulate import simulate
+from workers.fold.output import write_tables
+from workers.run.simulate import simulate
 
 SEEDS = (11, 12, 13, 14, 15, 16)
 SPEC = {

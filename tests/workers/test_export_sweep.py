@@ -18,8 +18,8 @@ from workers.exports.conserving import conserving_nodes
 from workers.exports.pbrt import pbrt_tables
 from workers.exports.profiles import radial_profiles, summary_rows
 from workers.exports.source import ExportSource
-from workers.output import write_tables
-from workers.simulate import simulate, simulate_sweep
+from workers.fold.output import write_tables
+from workers.run.simulate import simulate, simulate_sweep
 
 SWEEP = {
     "name": "sweep-pbrt", "sweep": {"albedo": [0.3, 0.8, 0.95], "g": [0.5], "eta": [1.33], "walks": "independent"},

@@ -1,4 +1,4 @@
-"""workers.finite: a value column must be finite, a standard error finite or NaN (no error bar)."""
+"""workers.fold.finite: a value column must be finite, a standard error finite or NaN (no error bar)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pyarrow as pa
 import pytest
 
 from schema import SUMMARY_SCHEMA
-from workers.finite import NonFiniteResult, check_finite
+from workers.fold.finite import NonFiniteResult, check_finite
 
 
 def _summary(**values) -> pa.Table:

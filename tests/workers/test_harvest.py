@@ -1,4 +1,4 @@
-"""The exit tally's lookup (workers.harvest) against the reference lookups of workers.binning
+"""The exit tally's lookup (workers.walk.harvest) against the reference lookups of workers.walk.binning
 (torch.searchsorted / bucketize on the stored edges), and the compiled kernel against the eager
 function, bit for bit."""
 
@@ -17,10 +17,11 @@ import torch
 
 from schema import azimuth_edges, uniform_edges
 from tests.reference.binning import searched
-from workers.binning import BinLayout, outgoing_azimuth
-from workers.harvest import ExitBins, batch_index, count_le, exit_bins
-from workers.optics import refracted_cos
-from workers.walk import EMPTY, EXITED, Lanes
+from workers.fold.configs import BinLayout
+from workers.walk.binning import outgoing_azimuth
+from workers.walk.harvest import ExitBins, batch_index, count_le, exit_bins
+from workers.walk.optics import refracted_cos
+from workers.walk.walk import EMPTY, EXITED, Lanes
 
 TWO_PI = 2.0 * math.pi
 
@@ -148,10 +149,11 @@ def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
     weights of exactly the finished lanes, the count of free lanes and the steps of finished
     photons; then the refill: free lanes get launch numbers in lane order until the launches
     run out, the rest become EMPTY, running lanes are untouched."""
-    from workers.bench import _spec
-    from workers.harvest import finish_and_refill
-    from workers.plan import build_configs
-    from workers.walk import RUNNING, TRUNCATED
+    from workers.measure.bench import _spec
+    from workers.walk.harvest import finish_and_refill
+    from workers.fold.configs import build_configs
+    from workers.run.plan import config_table
+    from workers.walk.walk import RUNNING, TRUNCATED
 
     bins, _, _ = _bins()
     n, n_cfg = 4000, 3
@@ -161,7 +163,8 @@ def test_finish_and_refill_records_finished_photons_and_refills_in_lane_order():
     st = before["status"]
     done = (st != RUNNING) & (st != EMPTY)
     free = st != RUNNING
-    table = build_configs(_spec("M2", "exits", 1000).model_copy(update={"incidence_deg": [0.0, 30.0, 60.0]})).table
+    spec = _spec("M2", "exits", 1000).model_copy(update={"incidence_deg": [0.0, 30.0, 60.0]})
+    table = config_table(spec, build_configs(spec))
     start, nxt, left = 5000, 7, int(free.sum()) - 100  # the last 100 free lanes get nothing
     launch = torch.tensor([start, nxt, nxt + left, n_cfg])
     key, absorbed, truncated, n_free, steps = finish_and_refill(full, table, launch, bins.batch_starts)
@@ -189,7 +192,7 @@ _COMPILED_SCRIPT = """
 import json
 import torch
 from tests.workers.test_harvest import _bins, _lanes, _block
-from workers.walk import EXITED
+from workers.walk.walk import EXITED
 
 torch.set_num_threads(1)
 bins, _, _ = _bins()
@@ -204,7 +207,7 @@ print(json.dumps(same + [float(((compiled[3] - eager[3]) / eager[3]).abs().max()
 
 def _block(lanes: dict, idx: torch.Tensor, bins: ExitBins, compiled: bool):
     """The shard runner's exit lookup on a block of lanes."""
-    from workers.harvest import exit_function
+    from workers.walk.harvest import exit_function
 
     return exit_function(compiled)(idx, _as_lanes(lanes), bins)
 

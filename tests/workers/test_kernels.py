@@ -1,4 +1,4 @@
-"""Compiled kernels kept on disk between processes (workers.kernels)."""
+"""Compiled kernels kept on disk between processes (workers.walk.kernels)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import torch
 
-import workers
-from workers import kernels
-from workers.kernels import GRAPH_MODULES, artifact_key, compile_kernel
+import workers.walk
+from workers.walk import kernels
+from workers.walk.kernels import GRAPH_MODULES, artifact_key, compile_kernel
 
 
 @dataclass(frozen=True)
@@ -24,7 +24,7 @@ class _Consts:
 
 
 def _relative_imports(module: str) -> set[str]:
-    tree = ast.parse((Path(workers.__file__).parent / f"{module}.py").read_text())
+    tree = ast.parse((Path(workers.walk.__file__).parent / f"{module}.py").read_text())
     return {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module}
 
 
@@ -106,7 +106,7 @@ def test_kernel_is_saved_loaded_and_rebuilt(tmp_path, monkeypatch, caplog):
 
 @dataclass
 class _Pair:
-    """A structure of arrays, as workers.walk.Lanes."""
+    """A structure of arrays, as workers.walk.walk.Lanes."""
 
     a: torch.Tensor
     b: torch.Tensor
@@ -118,7 +118,7 @@ def _accumulate(pair: _Pair, scale: float):
 
 
 def test_a_dataclass_of_views_is_passed_whole_saved_and_loaded(tmp_path, monkeypatch):
-    """Kernels take structures of arrays whole (chunks of workers.walk.Lanes): the artifact of a
+    """Kernels take structures of arrays whole (chunks of workers.walk.walk.Lanes): the artifact of a
     kernel called with a dataclass of views loads in a new kernel object (as in a new process),
     and the in-place writes of both reach the viewed storage, each in its own chunk."""
     monkeypatch.setenv("BSSRDF_KERNEL_CACHE", str(tmp_path))
@@ -179,7 +179,7 @@ _CONCURRENT = """
 import logging, sys, torch
 logging.basicConfig(level=logging.INFO, stream=sys.stdout, format="%(message)s")
 from tests.workers.test_kernels import _Consts, _axpy
-from workers.kernels import compile_kernel
+from workers.walk.kernels import compile_kernel
 k = compile_kernel(_axpy, "axpy", _Consts(1.5))
 print("result", float(k([torch.arange(8.0), torch.ones(8)], 2.0)))
 """

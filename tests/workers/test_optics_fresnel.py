@@ -1,4 +1,4 @@
-"""Tests of the interface kernels in workers/optics.py: Fresnel reflectance and refraction.
+"""Tests of the interface kernels in workers/walk/optics.py: Fresnel reflectance and refraction.
 
 Deterministic functions are checked against closed forms (normal incidence, Brewster angle,
 total internal reflection), identities (energy conservation, reciprocity, Snell's law) and the
@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from tests.reference.fresnel import critical_cosine, fresnel_reflectance, refracted_cosine
-from workers.optics import (
+from workers.walk.optics import (
     fresnel_dielectric,
     incident_refracted_direction,
     refracted_cos,

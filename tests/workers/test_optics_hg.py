@@ -1,9 +1,9 @@
-"""Tests of the sampling kernels in workers/optics.py: Henyey-Greenstein phase function and
+"""Tests of the sampling kernels in workers/walk/optics.py: Henyey-Greenstein phase function and
 exponential free path.
 
 Samplers are chi-square tested against their own pdf with cell masses integrated by scipy
 (tests/support/stats.py), pdfs against closed forms and quadrature (chi-square against its own pdf, identities, the vectorised kernel against a scalar one).  Uniforms for
-the samplers come from numpy's PCG64 so that these tests do not depend on workers/rng.py.
+the samplers come from numpy's PCG64 so that these tests do not depend on workers/walk/rng.py.
 Fresnel and refraction are in tests/workers/test_optics_fresnel.py, scatter_direction in
 tests/workers/test_optics_scatter.py.
 """
@@ -20,7 +20,7 @@ from scipy import integrate
 
 from tests.reference.single_scattering import hg_phase
 from tests.support.stats import assert_chi2, assert_mean, assert_samples_match_pdf, cell_masses, chi2_test, histogram
-from workers.optics import (
+from workers.walk.optics import (
     exponential_pdf,
     hg_pdf,
     sample_exponential,

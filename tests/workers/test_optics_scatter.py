@@ -1,4 +1,4 @@
-"""Tests of scatter_direction in workers/optics.py: rotating a direction by (cos theta, phi).
+"""Tests of scatter_direction in workers/walk/optics.py: rotating a direction by (cos theta, phi).
 
 Unit length and the cosine to the incoming direction are checked on random directions, the poles
 and both sides of the |uz| switch to the polar frame; the azimuth about the incoming direction is
@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from tests.support.stats import assert_chi2
-from workers.optics import scatter_direction
+from workers.walk.optics import scatter_direction
 
 DTYPES = [torch.float32, torch.float64]
 

@@ -11,8 +11,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from schema import BINS_SCHEMA, RADIAL_SCHEMA, SUMMARY_SCHEMA, parse_spec
-from workers.output import write_tables
-from workers.simulate import simulate
+from workers.fold.output import write_tables
+from workers.run.simulate import simulate
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def test_key_columns_carry_each_channels_coordinates(tables):
 
 # ---------------------------------------------------------------------------------------------
 # The grazing bin at eta = 1: the exit tally's S = w / cos_o has an infinite second moment in the
-# lowest cos(theta_o) bin (workers.output.s_infinite_variance), so no error bar is valid there.
+# lowest cos(theta_o) bin (workers.fold.output.s_infinite_variance), so no error bar is valid there.
 # ---------------------------------------------------------------------------------------------
 def _grazing_tables(tmp_path_factory, eta: float, estimator: str) -> dict[str, np.ndarray]:
     spec = parse_spec({
@@ -78,7 +78,7 @@ def grazing_tables(tmp_path_factory):
 
 
 def test_s_infinite_variance_rule():
-    from workers.output import s_infinite_variance
+    from workers.fold.output import s_infinite_variance
 
     for comp in ("single", "multiple", "total"):
         assert s_infinite_variance("exits", comp, 1.0, 0.0)

@@ -1,4 +1,4 @@
-"""Tests of the counter-based generator (workers/rng.py).
+"""Tests of the counter-based generator (workers/walk/rng.py).
 
 Known-answer vectors of Philox-4x32-10 from Random123 (kat_vectors), the tensor version against
 the plain-Python one, the float mappings, and statistical checks of uniformity and independence
@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from tests.support.stats import assert_chi2, assert_z, z_threshold
-from workers import rng
-from workers.rng import philox4x32, philox4x32_scalar, stream_key, to_i32, to_u32, uniform_halfopen, uniform_open
+from workers.walk import rng
+from workers.walk.rng import philox4x32, philox4x32_scalar, stream_key, to_i32, to_u32, uniform_halfopen, uniform_open
 
 M32 = 0xFFFFFFFF
 
@@ -95,7 +95,7 @@ def test_compiled_int64_words_are_refused():
 
 def test_int32_and_int64_rounds_agree_eager():
     """The two implementations of the rounds (int32 lanes for compiled code, int64 eager)."""
-    from workers.rng import _philox_i32, _philox_u64
+    from workers.walk.rng import _philox_i32, _philox_u64
 
     rng = np.random.default_rng(6)
     words = torch.from_numpy(rng.integers(0, 2**32, size=(6, 5000), dtype=np.uint64).astype(np.int64))

@@ -1,5 +1,5 @@
 """Shared walks: one walk at a group's largest albedo tallies every albedo of the group by the
-weight factor (a / a_w)^n (workers/reweight.py).
+weight factor (a / a_w)^n (workers/fold/reweight.py).
 
 - the per-photon squares a member's error bars come from are those of its reweighted entries
   (checked against the brute-force per-photon moments);
@@ -21,11 +21,12 @@ import pytest
 from schema import SpecError, parse_spec
 from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
 from tests.support.tables import bitwise_equal
-from workers.output import write_tables
-from workers.reweight import MemberTallies, member_factors
-from workers.simulate import run_tasks, simulate, simulate_sweep
-from workers.sweep import JobFold, group_walk
-from workers.tally import photon_moments
+from workers.fold.output import write_tables
+from workers.fold.reweight import MemberTallies, member_factors
+from workers.run.simulate import run_tasks, simulate, simulate_sweep
+from workers.fold.job import JobFold
+from workers.run.task import group_walk
+from workers.fold.tally import photon_moments
 
 TOTAL = 2
 MIN_EVENTS = 30
@@ -157,7 +158,7 @@ def test_reweighted_albedos_agree_with_their_own_walks_in_every_bin(pair, walk_s
 
 def test_reweighted_error_bars_are_honest_against_the_direct_walks(pair):
     """Per-photon errors of the reweighted rows are no larger than the direct walks' (module
-    docstring of workers.reweight: less roulette noise), to within the spread of two estimates."""
+    docstring of workers.fold.reweight: less roulette noise), to within the spread of two estimates."""
     est, shared, indep = pair
     for a, b in zip(shared[:-1], indep[:-1]):
         ra, rb = a.stderr(f"{est}/Rd")[0, TOTAL], b.stderr(f"{est}/Rd")[0, TOTAL]
@@ -200,8 +201,9 @@ def test_same_bytes_on_one_thread_and_two_processes_and_the_leader_is_its_own_jo
 
 def test_group_fold_saved_and_restored_after_every_task_gives_the_same_results():
     from tests.support.tallies import tally_digest
-    from workers.sweep import run_task, target_rule
-    from workers.tally import ShardTally
+    from workers.fold.job import target_rule
+    from workers.run.task import run_task
+    from workers.fold.tally import ShardTally
 
     spec = sweep_spec("hybrid", "shared", 4, 600, shards=3, target={"rel_stderr": 0.05},
                       sweep={"albedo": [0.2, 0.5, 0.7, 0.9], "g": [0.0], "eta": [1.33], "group_edges": [0.6]})

@@ -8,9 +8,9 @@ import pytest
 
 from schema import parse_spec
 from schema.sizes import estimate_sizes, size_limit_problems
-from workers.output import write_tables
-from workers.shard import run_shard
-from workers.simulate import simulate
+from workers.fold.output import write_tables
+from workers.run.shard import run_shard
+from workers.run.simulate import simulate
 
 
 @pytest.mark.parametrize("estimator, channels", [("exits", "preset"), ("both", "explicit")])

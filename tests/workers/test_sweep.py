@@ -16,12 +16,13 @@ import pytest
 from schema import parse_spec
 from tests.support.tables import bitwise_equal
 from tests.support.tallies import tally_digest
-from workers.merge import Fold, MergeError, merge
-from workers.output import write_tables
-from workers.shard import run_shard
-from workers.simulate import simulate, simulate_sweep
-from workers.sweep import JobFold, run_task
-from workers.tally import ShardTally
+from workers.fold.merge import Fold, MergeError, merge
+from workers.fold.output import write_tables
+from workers.run.shard import run_shard
+from workers.run.simulate import simulate, simulate_sweep
+from workers.fold.job import JobFold
+from workers.run.task import run_task
+from workers.fold.tally import ShardTally
 
 TABLES = ("radial", "bins", "summary")
 BINS = {"radial": {"count": 4, "max_mm": 3.0}, "theta_s": {"count": 2}, "cos_theta_o": {"count": 2}, "phi_o": {"count": 2}}
@@ -164,7 +165,7 @@ def test_simulate_sweep_with_a_stop_rule_skips_the_rest_of_that_medium(tmp_path)
 
 
 def test_sweep_to_a_target_error_equals_each_mediums_own_run_to_it(tmp_path):
-    """With a target, each medium stops at the first K shards that meet it (workers.target), the
+    """With a target, each medium stops at the first K shards that meet it (workers.fold.target), the
     same K and the same bits as that medium's single-medium run to the target: here the bright
     medium stops before its last shard, the dark one never meets it and runs all six."""
     spec = sweep(sweep={"albedo": [0.3, 0.9], "g": [0.0], "eta": [1.3]}, estimator="exits", shards=6,

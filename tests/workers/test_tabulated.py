@@ -1,4 +1,4 @@
-"""pbrt's tabulated BSSRDF (workers.tabulated): our Sample_Sr / Pdf_Sr / Sr / r_max on pbrt's own
+"""pbrt's tabulated BSSRDF (workers.models.tabulated): our Sample_Sr / Pdf_Sr / Sr / r_max on pbrt's own
 photon-beam-diffusion table, proved against the density they must follow."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 from scipy import integrate
 
 from tests.support.stats import assert_samples_match_pdf
-from workers.diffusion import pbd_rd
-from workers.tabulated import BSSRDFTable, beam_diffusion_table, pbrt_rho_samples, pdf_sr, r_max, sample_sr, sr
+from workers.models.diffusion import pbd_rd
+from workers.models.tabulated import BSSRDFTable, beam_diffusion_table, pbrt_rho_samples, pdf_sr, r_max, sample_sr, sr
 
 
 @pytest.fixture(scope="module")

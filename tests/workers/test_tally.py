@@ -1,4 +1,4 @@
-"""Per-photon second moments (workers.tally): several contributions of one photon to one entry
+"""Per-photon second moments (workers.fold.tally): several contributions of one photon to one entry
 are squared together, in the numpy reference and in the hybrid's fused kernel alike."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ from collections import defaultdict
 import numpy as np
 import torch
 
-from workers.hybrid import photon_entries
-from workers.plan import ShardPlan
-from workers.shard import _Runner
-from workers.tally import PhotonAccumulator, photon_moments
-from workers.walk import EMPTY, RUNNING
+from workers.walk.hybrid import photon_entries
+from workers.run.plan import ShardPlan
+from workers.run.shard import _Runner
+from workers.fold.tally import PhotonAccumulator, photon_moments
+from workers.walk.walk import EMPTY, RUNNING
 
 
 def _brute_squares(key: np.ndarray, value: np.ndarray, size: int) -> np.ndarray:

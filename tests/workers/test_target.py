@@ -1,4 +1,4 @@
-"""Runs to a target error: the decision (workers.target) and simulate's stop after the first K
+"""Runs to a target error: the decision (workers.fold.target) and simulate's stop after the first K
 shards, bitwise the merge of those shards whatever the number of threads."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from schema import SimulationSpec
-from workers.merge import merge
-from workers.output import summary
-from workers.simulate import run_shards, simulate
-from workers.target import MIN_DOF, target_status
+from workers.fold.merge import merge
+from workers.fold.output import summary
+from workers.run.simulate import run_shards, simulate
+from workers.fold.target import MIN_DOF, target_status
 
 MEDIUM = {"sigma_a": 0.1, "sigma_s": 0.9, "g": 0.0, "eta": 1.0}
 
@@ -124,7 +124,7 @@ def test_unreachable_target_runs_every_shard():
 
 
 def test_merge_refuses_what_is_not_the_whole_run_or_a_prefix(tallies):
-    from workers.merge import Fold, MergeError
+    from workers.fold.merge import Fold, MergeError
 
     spec, ts = tallies
     with pytest.raises(MergeError, match="shards 0..29"):

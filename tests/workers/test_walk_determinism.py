@@ -21,10 +21,10 @@ import pytest
 import torch
 
 from tests.support.tallies import tally_digest
-from workers.merge import merge
-from workers.output import write_tables
-from workers.shard import run_shard
-from workers.tally import ShardTally
+from workers.fold.merge import merge
+from workers.fold.output import write_tables
+from workers.run.shard import run_shard
+from workers.fold.tally import ShardTally
 
 # "both" estimators, an oblique angle next to normal incidence, every bin axis split; analog
 # absorption keeps the connection work small (~5 vertices per photon).
@@ -91,7 +91,7 @@ def test_shards_run_in_another_order_give_the_same_bytes(spec, tallies):
 def test_worker_processes_give_the_same_bytes(spec, tallies):
     """Shards on two worker processes (what `bssrdf simulate` does), in whatever order they
     finish, give the bytes of the shards run here; progress reaches this process."""
-    from workers.pool import ShardPool
+    from workers.run.pool import ShardPool
 
     seen = []
     with ShardPool(2) as pool:
@@ -143,7 +143,7 @@ _COMPILED_SCRIPT = """
 import dataclasses, hashlib, json, sys
 import torch
 from schema import SimulationSpec
-from workers.shard import run_shard
+from workers.run.shard import run_shard
 
 spec = SimulationSpec.model_validate_json(sys.argv[1])
 out = {}
@@ -198,7 +198,7 @@ _COMPILED_EXITS_SCRIPT = """
 import json, sys
 import torch
 from schema import SimulationSpec
-from workers.shard import run_shard
+from workers.run.shard import run_shard
 
 torch.set_num_threads(1)
 spec = SimulationSpec.model_validate_json(sys.argv[1])
@@ -217,7 +217,7 @@ def test_compiled_exit_walk_with_its_tail_chunk_agrees_with_eager(walk_stats):
     against the eager walk on independent photons (another seed): Rd, Rd(r) of every component
     and the absorbed power agree within error bars.  The medium is the benchmark's M2, whose
     kernels the benchmark has usually compiled already."""
-    from workers.bench import _spec
+    from workers.measure.bench import _spec
 
     base = _spec("M2", "exits", 200_000).model_copy(update={"batches_per_shard": 64})
     compiled_spec = base.model_copy(update={"seed": base.seed + 1})

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from tests.reference.fresnel import fresnel_reflectance
-from workers.merge import merge
-from workers.output import summary
-from workers.shard import run_shard
+from workers.fold.merge import merge
+from workers.fold.output import summary
+from workers.run.shard import run_shard
 
 TOTAL = 2
 SHARDS = 16

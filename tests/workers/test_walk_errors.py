@@ -17,7 +17,7 @@ excess spread.
 Two media: eta = 1.3 with analog absorption, and the index-matched eta = 1 with the default
 weights absorption (Russian roulette).  At eta = 1 the exit tally's S in the lowest cos(theta_o)
 bin sums w / cos_o over exits whose density goes like cos_o near grazing, so its second moment
-diverges logarithmically (workers/harvest.py); exits score both components that way and the
+diverges logarithmically (workers/walk/harvest.py); exits score both components that way and the
 hybrid its multiple scattering.  That grazing bin is its own entry here (3 cos bins) and must be
 among the tested entries.  What this two-run test can and cannot see there: the difference of two
 self-normalised estimates stays symmetric with unit spread (in a model of the bin, 280 events:
@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.simulate import simulate
+from workers.run.simulate import simulate
 
 MIN_EVENTS = 30
 # g = 0.9, albedo 0.9, sigma_t = 1/mm (~10 collisions per photon): eta = 1.3 with analog

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.simulate import simulate
+from workers.run.simulate import simulate
 
 MEDIUM = dict(sigma_a=0.1, sigma_s=0.9, g=0.9, eta=1.3)
 MIN_EVENTS = 30  # events in each run for a bin to be compared

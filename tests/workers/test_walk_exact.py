@@ -18,7 +18,7 @@ from tests.reference.single_scattering import (
     single_scattering_radial_cos,
     single_scattering_total,
 )
-from workers.simulate import simulate
+from workers.run.simulate import simulate
 
 SINGLE, MULTIPLE, TOTAL = 0, 1, 2
 
@@ -151,7 +151,7 @@ def test_single_scattering_directional(single_runs, matched_runs, est, eta, quan
     S is compared as its raw sum (the radiance integrated over dA d omega: sum of w / cos_o),
     the table's S times A Omega.  At normal incidence a photon scattered once leaves radially
     (phi_o = 0), so all its flux is in phi_o bin 0, which is centred on phi_o = 0
-    (workers.conventions), and the others hold exactly 0.
+    (workers.walk.conventions), and the others hold exactly 0.
     """
     result = (single_runs if eta == SS_ETA else matched_runs)[est]
     bins = result.mean(f"{est}/bins_{quantity}")[NORMAL, SINGLE]  # [n_r + 1, n_theta, n_cos, n_phi]

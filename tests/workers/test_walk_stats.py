@@ -19,9 +19,9 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from workers.output import summary, write_tables
-from workers.simulate import simulate
-from workers.walk import WalkParams
+from workers.fold.output import summary, write_tables
+from workers.run.simulate import simulate
+from workers.walk.walk import WalkParams
 
 N_RUNS = 24
 # Weights mode, albedo 0.7 (~20 vertices per photon), g = 0.5, eta = 1.3, sigma_t = 1/mm; four

@@ -5,7 +5,7 @@
   so G and S of a bin equal G and S of its mirror bin, the bin whose azimuth intervals are
   [-hi, -lo) of its own (modulo 2 pi), same r and cos(theta_o).  The mirror is found from the
   stored edges, whatever the binning convention, and every bin must have one.  With bins centred
-  on the plane of incidence (workers.conventions) the mirror of (k, m) is ((n_t - k) mod n_t,
+  on the plane of incidence (workers.walk.conventions) the mirror of (k, m) is ((n_t - k) mod n_t,
   (n_p - m) mod n_p).  Single scattering at normal incidence leaves exactly at phi_o = 0: with
   an edge at phi_o = 0 all of it lands on one side of the edge ([0, h)) and none in the mirror
   bin ([-h, 0)), which this test reports.
@@ -36,7 +36,7 @@ import math
 import numpy as np
 import pytest
 
-from workers.simulate import simulate
+from workers.run.simulate import simulate
 
 MEDIUM = dict(sigma_a=0.2, sigma_s=0.8, g=0.7, eta=1.4)
 MIN_EVENTS = 30  # events of a compared bin (the mirror pair: 2 MIN_EVENTS together)

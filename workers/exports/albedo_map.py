@@ -28,7 +28,7 @@ the dataset at that (g, eta) (a sweep's albedo axis):
   half-space relation);
 * the classical dipole's total reflectance (Jensen et al. 2001; normal incidence, per unit power
   entered) and Christensen-Burley's fitted relation (2015; which fits diffuse illumination of an
-  index-matched isotropic half space, :func:`workers.diffusion.burley_reduced_albedo`), both at
+  index-matched isotropic half space, :func:`workers.models.diffusion.burley_reduced_albedo`), both at
   the reduced albedo alpha' = alpha (1 - g) / (1 - alpha g) as renderers apply them, with their
   error (model - measured) against ``rho_eff_normal`` and its z-score, and against
   ``rd_diffuse`` (what a diffusely lit surface shows);
@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.diffusion import (
+from workers.models.diffusion import (
     albedo_from_reduced,
     burley_total_rd,
     dipole_total_rd,

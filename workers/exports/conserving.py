@@ -2,9 +2,9 @@
 every radial bin to that bin's measured mass.
 
 pbrt interpolates a profile row between its radius nodes r_j with a Catmull-Rom spline and takes
-rhoEff and profileCDF as that spline's integral (workers.catmull_rom). The spline through node
+rhoEff and profileCDF as that spline's integral (workers.models.catmull_rom). The spline through node
 values f integrates over bin j (spacing "pbrt": bin j >= 1 is [r_j / q, r_j q), q = sqrt(1.2),
-bin 0 is [0, r_1 / q)) to (B f)_j, with B = :func:`workers.catmull_rom.bin_integral_matrix`, a
+bin 0 is [0, r_1 / q)) to (B f)_j, with B = :func:`workers.models.catmull_rom.bin_integral_matrix`, a
 banded matrix (bin j sees nodes j-2 .. j+2). The node values are the solution of
 
     B f = M        (M_j the measured mass of bin j, per unit power entered),
@@ -64,7 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schema.bins import pbrt_radial_edges, pbrt_radius_nodes
-from workers.catmull_rom import bin_integral_matrix, integrate_catmull_rom, interval_slopes
+from workers.models.catmull_rom import bin_integral_matrix, integrate_catmull_rom, interval_slopes
 
 from .nodes import HALF_WIDTH, node_values
 

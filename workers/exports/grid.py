@@ -69,7 +69,7 @@ def table_grid(table: pa.Table, name: str) -> Grid:
     key_shape = tuple(len(keys[a]) for a in KEY_AXES)
     flat_key = np.ravel_multi_index(key_idx, key_shape)
     rows_per_key = len(flat_key) // len(np.unique(flat_key))
-    # rows of one key are contiguous; within them the bins run r-major (workers.output)
+    # rows of one key are contiguous; within them the bins run r-major (workers.fold.output)
     order = np.argsort(flat_key, kind="stable")
     n_bins = []
     edges: dict[str, tuple[np.ndarray, np.ndarray]] = {}

@@ -1,7 +1,7 @@
 """Where pbrt's interpolation between albedo rows makes a profile it cannot sample.
 
 pbrt evaluates and samples a tabulated BSSRDF at any albedo rho between the rows by combining the
-rows with Catmull-Rom weights in rho (workers.tabulated ``BSSRDFTable.row``): inside [rho_i,
+rows with Catmull-Rom weights in rho (workers.models.tabulated ``BSSRDFTable.row``): inside [rho_i,
 rho_i+1] the outer rows rho_i-1 and rho_i+2 get weights <= 0. Every exported row is >= 0
 (workers.exports.conserving), but the combination is not where a row with a negative weight has
 much more tail than the rows it is mixed with: at albedo 0.85 between rows 0.5 and 0.9 with a row
@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.catmull_rom import negative_mass
-from workers.tabulated import BSSRDFTable
+from workers.models.catmull_rom import negative_mass
+from workers.models.tabulated import BSSRDFTable
 
 __all__ = ["range_negative_mass", "interpolated_fraction", "interpolation_warnings", "RANGE_SAMPLES", "NEGLIGIBLE_NEGATIVE"]
 

@@ -1,6 +1,6 @@
 """The ``pbrt`` export: pbrt's tabulated radial profile, one table per (estimator, g, eta).
 
-What pbrt's ``TabulatedBSSRDF`` samples (workers.tabulated), measured instead of computed by
+What pbrt's ``TabulatedBSSRDF`` samples (workers.models.tabulated), measured instead of computed by
 photon beam diffusion. Rows: the albedos at (g, eta) of the dataset's media and channels
 (a sweep's albedo axis; rhoSamples must be distinct). Columns: pbrt's radius nodes, which
 requires the radial spacing ``"pbrt"`` (bins centred on the nodes). Each entry is
@@ -48,8 +48,8 @@ from pathlib import Path
 import numpy as np
 
 from schema.bins import pbrt_radius_nodes
-from workers.catmull_rom import integrate_catmull_rom, negative_mass
-from workers.tabulated import BSSRDFTable
+from workers.models.catmull_rom import integrate_catmull_rom, negative_mass
+from workers.models.tabulated import BSSRDFTable
 
 from .conserving import conserving_nodes
 from .interpolation import interpolation_warnings, range_negative_mass
@@ -157,7 +157,7 @@ def _table(source: ExportSource, estimator: str, g: float, eta: float, rows: lis
 
 def albedo_rows(source: ExportSource, g: float, eta: float) -> dict:
     """How the table's albedo rows were walked and what that means for their correlation:
-    rows of one shared walk group (workers/reweight.py) come from the same photons."""
+    rows of one shared walk group (workers/fold/reweight.py) come from the same photons."""
     spec = source.spec
     if not spec.is_sweep or spec.walk_mode() == "independent":
         return {"walks": "independent", "correlation": "every albedo row has its own walk: rows are independent"}

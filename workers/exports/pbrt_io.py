@@ -52,7 +52,7 @@ Binary (``*.bin``), every number little-endian::
 
 (float64 keeps every value; pbrt's Float is float32, a loader narrows.) :func:`read_pbrt` reads
 either file into a :class:`PbrtTable`; :meth:`PbrtTable.bssrdf_table` gives the arrays pbrt
-samples (:mod:`workers.tabulated`).
+samples (:mod:`workers.models.tabulated`).
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.tabulated import BSSRDFTable
+from workers.models.tabulated import BSSRDFTable
 
 __all__ = ["PbrtTable", "read_pbrt", "write_pbrt_json", "write_pbrt_binary", "MAGIC", "BINARY_VERSION", "ARRAYS"]
 

@@ -38,7 +38,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from schema import COMPONENTS
-from workers.diffusion import dipole_rd, pbd_multiple, pbd_rd, pbd_single
+from workers.models.diffusion import dipole_rd, pbd_multiple, pbd_rd, pbd_single
 
 from .albedo_map import AlbedoMap, albedo_maps
 from .grid import table_grid

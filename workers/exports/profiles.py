@@ -2,7 +2,7 @@
 
 A key is (estimator, medium, incidence_deg, channel, component); every row also carries its
 medium's coordinates albedo, g, eta (schema.tables). The rows of one key are contiguous in the
-stored order (workers.output), which this module relies on and checks.
+stored order (workers.fold.output), which this module relies on and checks.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def radial_profiles(radial: pa.Table) -> dict[Key, RadialProfile]:
             continue
         key = keys[start]
         if key in out:
-            raise ExportError(f"radial rows of {key} are not contiguous: the table was not written by workers.output")
+            raise ExportError(f"radial rows of {key} are not contiguous: the table was not written by workers.fold.output")
         sl = slice(start, i)
         out[key] = RadialProfile(key, float(cols["albedo"][start]), float(cols["g"][start]), float(cols["eta"][start]),
                                  cols["r_lo_mm"][sl].astype(np.float64), cols["r_hi_mm"][sl].astype(np.float64),

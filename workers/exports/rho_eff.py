@@ -10,7 +10,7 @@ covariance of the bin masses.
 Exit tally (``exits``): a photon leaves once, so its entries x_pj (its weight in bin j, all
 components) are non-zero in at most one bin. For such entries the per-photon second moments of
 any combination y_p = sum_j c_j x_pj follow from the bins' own: mean(y^2) = sum_j c_j^2 mean(x_j^2)
-and mean(x_j^2) = (N - 1) se_j^2 + m_j^2 (the tally's photon units, workers.tally), hence the
+and mean(x_j^2) = (N - 1) se_j^2 + m_j^2 (the tally's photon units, workers.fold.tally), hence the
 exact photon-unit standard error
 
     se(c . m)^2 = sum_j c_j^2 se_j^2 + (sum_j c_j^2 m_j^2 - (c . m)^2) / (N - 1)     (*)
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.catmull_rom import integrate_catmull_rom
+from workers.models.catmull_rom import integrate_catmull_rom
 
 __all__ = ["integration_weights", "disjoint_stderr", "DISJOINT_ESTIMATORS", "MEANING"]
 
@@ -48,7 +48,7 @@ MEANING = {
 
 def integration_weights(nodes) -> np.ndarray:
     """W_j: the Catmull-Rom integral over the nodes of the spline through the j-th unit vector,
-    so that :func:`workers.catmull_rom.integrate_catmull_rom` of f is sum_j W_j f_j."""
+    so that :func:`workers.models.catmull_rom.integrate_catmull_rom` of f is sum_j W_j f_j."""
     nodes = np.asarray(nodes, dtype=np.float64)
     total, _cdf = integrate_catmull_rom(nodes, np.eye(len(nodes)))
     return total

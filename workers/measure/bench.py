@@ -1,0 +1,124 @@
+"""`bssrdf bench` / `python -m workers.measure.bench`: throughput of the walk.
+
+For the benchmark media of the engine issue, at normal incidence, each estimator alone (hybrid,
+the default; exits; connections):
+M1: sigma_t 10/mm, albedo 0.99, g 0.9, eta 1.3 (about 380 steps per photon);
+M2: sigma_t 1/mm, albedo 0.9, g 0, eta 1.0 (about 27.5 steps per photon).
+Prints photons/s, interaction steps (free-path samples) per second per core and per CPU-second,
+the thread count and the memory peak (per worker process).  --threads N runs N shards at once in N
+worker processes (one core each), which is how `bssrdf simulate` and the workers use cores.  A
+warm-up run in every process first keeps compile time out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from schema import SimulationSpec
+
+from workers.run.simulate import positive_int
+
+__all__ = ["MEDIA", "bench_one", "add_parser", "main"]
+
+MEDIA = {
+    "M1": {"sigma_a": 0.1, "sigma_s": 9.9, "g": 0.9, "eta": 1.3},
+    "M2": {"sigma_a": 0.1, "sigma_s": 0.9, "g": 0.0, "eta": 1.0},
+}
+DEFAULT_PHOTONS = {
+    ("M1", "hybrid"): 200_000, ("M2", "hybrid"): 2_000_000, ("M1", "exits"): 200_000, ("M2", "exits"): 2_000_000,
+    ("M1", "connections"): 2_000, ("M2", "connections"): 20_000,
+}  # fmt: skip
+
+
+def _spec(medium: str, estimator: str, photons: int, shards: int = 1) -> SimulationSpec:
+    return SimulationSpec.model_validate({
+        "name": f"bench-{medium}-{estimator}", "medium": MEDIA[medium], "photons": photons,
+        "shards": shards, "batches_per_shard": 4, "estimator": estimator, "seed": 7,
+    })  # fmt: skip
+
+
+def bench_one(medium: str, estimator: str, photons: int, threads: int = 1, repeat: int = 3) -> dict:
+    """Run `threads` shards of `photons` photons each concurrently, one worker process per shard
+    (:class:`workers.run.pool.ShardPool`, as `bssrdf simulate` does), after every process has warmed up
+    (compiled) on a small run; `repeat` times, reporting the median run (by wall time) and every
+    run's photons/s (shared machines vary by tens of percent from run to run).
+
+    Rates per core divide by `threads`; CPU time is the shards' own (thread CPU time in their
+    processes), so steps per CPU-second show how much of each core the walk gets.
+    """
+    from workers.run.pool import ShardPool  # torch: not needed to build the command-line parser
+
+    warm = _spec(medium, estimator, max(8, photons // 50), 1)
+    spec = _spec(medium, estimator, photons * threads, threads)
+    runs = []
+    with ShardPool(threads, warm_spec=warm) as pool:
+        pool.run(_spec(medium, estimator, max(8, photons // 20) * threads, threads), range(threads))  # the pool's first run pays set-up costs
+        for _ in range(repeat):
+            wall0 = time.perf_counter()
+            tallies = pool.run(spec, range(threads))
+            runs.append((time.perf_counter() - wall0, tallies))
+    runs.sort(key=lambda run: run[0])
+    wall, tallies = runs[len(runs) // 2]
+    cpu = sum(t.info["cpu_s"] for t in tallies)
+    peak = max(t.info.get("maxrss_mib", 0.0) for t in tallies)
+    steps = sum(t.info["photon_steps"] for t in tallies)
+    n = photons * threads
+    return {
+        "photons": n,
+        "photons_per_s": n / wall,
+        "steps_per_photon": steps / n,
+        "steps_per_s": steps / wall,
+        "steps_per_cpu_s": steps / cpu,
+        "steps_per_s_per_core": steps / wall / threads,
+        "vertices": sum(t.info["vertices"] for t in tallies),
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "threads": threads,
+        "engine": tallies[0].info["engine"],
+        "memory_peak_mib": peak,
+        "runs_photons_per_s": [photons * threads / w for w, _ in runs],
+    }
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="measure walk throughput (photons/s, steps/s per core)", description=__doc__)
+    _arguments(p)
+    p.set_defaults(func=main)
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--media", default="M1,M2", help="comma-separated subset of M1,M2")
+    p.add_argument("--estimators", default="hybrid,exits,connections", help="comma-separated subset of hybrid,exits,connections")
+    p.add_argument("--photons", type=int, help="photons per run (default: per medium and estimator)")
+    p.add_argument("--threads", type=int, default=1, help="shards run concurrently, one worker process and core each (default 1)")
+    p.add_argument("--repeat", type=positive_int, default=3, help="timed runs; the median is reported (default 3)")
+    p.add_argument("--json", action="store_true", help="print one JSON object keyed by medium and estimator")
+
+
+def main(args: argparse.Namespace) -> int:
+    out: dict[str, dict] = {}
+    for medium in args.media.split(","):
+        for est in args.estimators.split(","):
+            photons = args.photons or DEFAULT_PHOTONS[(medium, est)]
+            r = bench_one(medium, est, photons, args.threads, args.repeat)
+            out.setdefault(medium, {})[est] = r
+            if not args.json:
+                print(
+                    f"{medium} {est:<12} {r['photons_per_s']:>10.4g} photons/s  {r['steps_per_s']:>9.3g} steps/s  "
+                    f"{r['steps_per_s_per_core']:>9.3g} steps/s per core  {r['steps_per_cpu_s']:>9.3g} steps/CPU-s  ({r['steps_per_photon']:.1f} steps/photon, "
+                    f"{r['threads']} threads, {r['engine']}, peak {r['memory_peak_mib']:.0f} MiB per process; "
+                    f"median of {len(r['runs_photons_per_s'])}: {min(r['runs_photons_per_s']):.4g}-{max(r['runs_photons_per_s']):.4g} photons/s)",
+                    flush=True,
+                )
+    if args.json:
+        print(json.dumps(out, sort_keys=True))
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="python -m workers.measure.bench", description=__doc__)
+    _arguments(parser)
+    sys.exit(main(parser.parse_args()))

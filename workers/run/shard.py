@@ -1,0 +1,295 @@
+"""Run one shard of a simulation: a pure function of (spec, shard index).
+
+The shard's photons [start, stop) of every configuration (incidence angle x channel) are
+launched in a fixed order, photon-major: (p, c) for p in range(start, stop) for c in configs.
+Finished lanes are harvested after every call of the step function and refilled in lane order,
+so the schedule, and with it every float64 sum, is fixed by the spec alone.  What is fixed
+before the run starts is its plan (:mod:`workers.run.plan`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from schema import SimulationSpec
+
+from workers.walk.binning import histogram_index
+from workers.walk.connections import Vertices, VertexBuffer, connection_function
+from workers.walk.engine import init_engine
+from workers.walk.harvest import exit_function, finish_function
+from workers.walk.hybrid import entries_function
+from workers.fold.reweight import MemberTallies, member_prefix
+from .plan import EXIT_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
+from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
+from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
+
+__all__ = ["run_shard"]
+
+
+@dataclass(frozen=True)
+class _Kernels:
+    """The (compiled or eager) functions a shard run calls, chosen once from its plan."""
+
+    step: Callable  # steps a chunk of lanes in place (workers.walk.walk.step_function)
+    finish: Callable  # records finished lanes and refills them (workers.walk.harvest.finish_and_refill)
+    exits: Callable  # exit events' bins (workers.walk.harvest.exit_bins)
+    entries: Callable  # the hybrid's entries per photon (workers.walk.hybrid.photon_entries)
+    connect: Callable  # both connection techniques for a chunk of vertices
+
+    @classmethod
+    def for_plan(cls, plan: ShardPlan) -> "_Kernels":
+        c = plan.compiled
+        return cls(
+            step=step_function(plan.params, plan.n_steps, plan.connect, c), finish=finish_function(c), exits=exit_function(c),
+            entries=entries_function(c), connect=connection_function(c),
+        )  # fmt: skip
+
+
+@dataclass
+class _Counters:
+    """Work done, for the shard's info: steps = calls x steps per call; photon_steps = interaction
+    steps (free paths) of finished photons; vertices = connected scattering vertices."""
+
+    steps: int = 0
+    photon_steps: int = 0
+    vertices: int = 0
+
+
+class _Runner:
+    """The mutable bookkeeping of one shard run (kept out of the pure entry point): the lanes and
+    the chunks they are stepped in, the accumulators, the vertices waiting for connection."""
+
+    def __init__(self, plan: ShardPlan, progress: Callable[[int], None] | None, members: tuple[float, ...] = ()):
+        self.plan, self.progress = plan, progress
+        self.kernels = _Kernels.for_plan(plan)
+        self.count = _Counters()
+        batch_estimators = [e for e in plan.estimators if e in BATCH_ESTIMATORS]
+        photon_estimators = [e for e in plan.estimators if e not in BATCH_ESTIMATORS]
+        ranges = plan.spec.batch_photon_ranges(plan.shard_index)
+        self.acc = BatchAccumulator(batch_estimators, plan.cfgs.n, plan.layout.shape, ranges)
+        self.photons = PhotonAccumulator(photon_estimators, plan.cfgs.n, plan.layout.shape)
+        self.members = None  # a shared walk's other albedos (workers.fold.reweight)
+        if members:
+            walked = set(plan.cfgs.albedo.tolist())
+            if len(walked) != 1 or batch_estimators:
+                raise ValueError("a shared walk needs one albedo for every configuration and only per-photon estimators (exits, hybrid)")
+            self.members = MemberTallies(members, walked.pop(), plan.table.w0.double().numpy(), photon_estimators,
+                                         plan.cfgs.n, plan.layout.shape)  # fmt: skip
+        self.vertex_buffer = VertexBuffer(VERTEX_CHUNK)
+        # Lanes: [0, active * chunk) hold every running photon; chunks are views stepped one by one.
+        self.lanes = Lanes.empty(plan.n_lanes)
+        self.chunk = plan.chunk
+        self.chunks = [self.lanes.view(a, a + self.chunk) for a in range(0, plan.n_lanes, self.chunk)]
+        self.active = len(self.chunks)
+        self.next_launch = 0
+        self.tail_lanes = None  # photons still running when the tail chunk took over
+
+    # -- lanes --------------------------------------------------------------------------------
+    def finish_and_refill(self) -> tuple[int, int]:
+        """Record the finished photons (walk totals; their exits must be tallied already) and
+        launch the next photons into the lanes not running, in lane order; returns (photons
+        finished, photons launched).  One pass over all the lanes (one compiled shape per lane
+        count): in the tail, where only the first chunk runs, the rest are EMPTY and cost little."""
+        plan = self.plan
+        launch = torch.tensor([plan.start, self.next_launch, plan.n_launch, plan.cfgs.n], dtype=torch.int64)
+        if self.members is not None:  # the finished lanes' state, before the refill overwrites it
+            L = self.lanes
+            snap = (L.status.clone(), L.nscat.clone(), L.w.clone())
+        key, absorbed, truncated, n_free, steps = self.kernels.finish(self.lanes, plan.table, launch, plan.exit_bins.batch_starts)
+        launched = min(int(n_free), plan.n_launch - self.next_launch)
+        self.next_launch += launched
+        self.count.photon_steps += int(steps)
+        if not int(steps):
+            return 0, launched
+        key = key.numpy()
+        done = key < len(self.acc.sizes) * plan.cfgs.n
+        self.photons.add_walk(key[done] % plan.cfgs.n, absorbed.numpy()[done], truncated.numpy()[done])
+        if self.members is not None:
+            st, nscat, w = (t.numpy()[done] for t in snap)
+            self.members.add_walk(key[done] % plan.cfgs.n, st == EXITED, st == TRUNCATED, w, nscat)
+        return self.acc.finish_photons(key), launched
+
+    def shrinkable(self, running: int) -> bool:
+        """Whether compact() would step fewer lanes: nothing is left to launch and the running
+        lanes fit in fewer chunks, or in the tail chunk."""
+        if self.next_launch < self.plan.n_launch:
+            return False
+        if running <= (self.active - 1) * self.chunk:
+            return True
+        tail = self.plan.tail_chunk
+        return tail is not None and self.chunk != tail and running <= tail
+
+    def compact(self, running: int) -> None:
+        """Tail of the shard (nothing left to launch): move the running lanes, in lane order, to
+        the front so that only ceil(running / chunk) chunks are stepped, and once they fit in
+        the tail chunk, step that alone."""
+        if not self.shrinkable(running):
+            return
+        n = self.active * self.chunk
+        idx = torch.nonzero(self.lanes.status[:n] == RUNNING).squeeze(1)
+        for t in self.lanes.tensors():
+            t[: len(idx)] = t[idx]
+        self.lanes.status[len(idx) : n] = EMPTY
+        tail = self.plan.tail_chunk
+        if tail is not None and self.chunk != tail and running <= tail:
+            self.tail_lanes = running
+            self.chunk = tail
+            self.chunks = [self.lanes.view(0, self.chunk)]
+        self.active = max(1, math.ceil(running / self.chunk))
+
+    def harvest(self, running: int) -> int:
+        """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
+        st = self.lanes.status[: self.active * self.chunk]
+        if "exits" in self.plan.estimators:
+            self.tally_exits(torch.nonzero(st == EXITED).squeeze(1))
+        if "hybrid" in self.plan.estimators:
+            self.tally_hybrid(torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1))
+        finished, launched = self.finish_and_refill()
+        if self.acc.ready:
+            self.flush_vertices(force=True)  # a batch folds only after all its vertices are tallied
+            self.acc.fold_ready()
+        if self.progress is not None:
+            self.progress(finished)
+        running += launched
+        self.compact(running)
+        return running
+
+    # -- exit estimator and hybrid ------------------------------------------------------------
+    def _blocks(self, idx: torch.Tensor, fn, axis: tuple[int, ...] | None = None):
+        """fn(block) over EXIT_BLOCK lanes of idx at a time (in lane order), as numpy arrays: the
+        compiled kernels have one static shape, so the last block is padded with its first lane
+        and cut (along the lane axis of each output: `axis`, default 0)."""
+        for a in range(0, len(idx), EXIT_BLOCK):
+            block = idx[a : a + EXIT_BLOCK]
+            m = len(block)
+            if m < EXIT_BLOCK and self.plan.compiled:
+                block = torch.cat((block, block[:1].expand(EXIT_BLOCK - m)))
+            out = fn(block)
+            yield [(v[:m] if ax == 0 else v[:, :m]).numpy() for v, ax in zip(out, axis or (0,) * len(out))]
+
+    def tally_exits(self, idx: torch.Tensor) -> None:
+        """Tally the exit events of lanes idx: one entry per photon."""
+        fn = lambda b: (*self.kernels.exits(b, self.lanes, self.plan.exit_bins), self.lanes.nscat[b])  # noqa: E731
+        for flat, _batch, g, s, nscat in self._blocks(idx, fn):
+            self.photons.add_exits("exits", flat, g, s)
+            if self.members is not None:
+                self.members.add_exits(flat, g, s, nscat)
+
+    def tally_hybrid(self, idx: torch.Tensor) -> None:
+        """The hybrid estimator's entries of the photons finished in lanes idx: the first-vertex
+        connection samples (single) and the exit after two or more scatterings (multiple)."""
+        plan = self.plan
+        fn = lambda b: (*self.kernels.entries(b, self.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout), self.lanes.nscat[b])  # noqa: E731
+        for flat2, g, s, key, weight, nscat in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1, 0)):
+            self.photons.add_photons("hybrid", flat2, g, s, key, weight)
+            if self.members is not None:
+                self.members.add_hybrid(flat2, g, s, key, nscat)
+
+    def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
+        """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
+        layout = self.plan.layout
+        return histogram_index(cfg, comp, spatial, direction, (layout.n_r + 1) * layout.n_theta, layout.n_cos * layout.n_phi)
+
+    # -- connection estimator -----------------------------------------------------------------
+    def collect_vertices(self, vertex, offset: int) -> None:
+        """Keep the vertices of the last step of the chunk at lane `offset` (`vertex` as the step
+        function returns it); connect them once a chunk of VERTEX_CHUNK is full."""
+        collided, ux_in, uy_in, uz_in, w_in = vertex
+        local = torch.nonzero(collided).squeeze(1)
+        idx = local + offset
+        if len(idx) == 0:
+            return
+        L = self.lanes
+        v = Vertices(
+            x=L.x[idx], y=L.y[idx], z=L.z[idx], ux=ux_in[local], uy=uy_in[local], uz=uz_in[local], vx=L.ux[idx], vy=L.uy[idx],
+            vz=L.uz[idx], w=w_in[local], cfg=L.cfg[idx], photon=L.photon[idx], draw=L.step[idx] - 1,
+            multiple=(L.nscat[idx] >= 2).to(torch.int64),
+        )  # fmt: skip
+        self.count.vertices += len(idx)
+        if self.vertex_buffer.add(v):
+            self.flush_vertices(force=False)
+
+    def flush_vertices(self, force: bool) -> None:
+        """Connect the full chunks of vertices waiting, and with force the short last one too."""
+        for v in self.vertex_buffer.chunks(force):
+            self.connect_chunk(v)
+
+    def connect_chunk(self, v: Vertices) -> None:
+        """Tally both connection techniques for up to VERTEX_CHUNK vertices.
+
+        A short chunk is padded to VERTEX_CHUNK (the compiled kernel has one static shape) with
+        copies of its first vertex, whose results are cut off before tallying.
+        """
+        n = len(v)
+        (Gu, Su, spu, dru), (Gp, Sp, spp, drp) = self.kernels.connect(v.pad(VERTEX_CHUNK), self.plan.table, self.plan.geo)
+        cfg, comp = v.cfg, v.multiple
+        batch = self.acc.batch_of(v.photon.numpy())
+        flat = self.flat_index(cfg[:, None], comp[:, None], spu[:n], dru[:n])
+        nb = flat.shape[1]
+        self.acc.add_hist("connections", np.repeat(batch, nb), flat.reshape(-1).numpy(),
+                          Gu[:n].reshape(-1).double().numpy(), Su[:n].reshape(-1).double().numpy())  # fmt: skip
+        flat = self.flat_index(cfg, comp, spp[:n], drp[:n])
+        self.acc.add_hist("connections", batch, flat.numpy(), Gp[:n].double().numpy(), Sp[:n].double().numpy())
+
+    # -- main loop ------------------------------------------------------------------------------
+    def run(self) -> ShardTally:
+        t0, c0 = time.perf_counter(), time.thread_time()
+        with torch.no_grad():  # also around the first refill: grad mode is part of a compiled graph's key
+            tally = self._run(t0)
+        tally.info["cpu_s"] = time.thread_time() - c0  # this thread's CPU (torch runs one intra-op thread per shard)
+        if self.members is not None:
+            tally.info["members"] = len(self.members)
+        return tally
+
+    def _run(self, t0: float) -> ShardTally:
+        plan = self.plan
+        running = self.finish_and_refill()[1]
+        # Harvesting costs a pass over the lanes plus Python work: wait until an eighth of the
+        # lanes has finished (or none runs) so the cost is spread over many photons.
+        harvest_at = max(1, plan.n_lanes // HARVEST_DIVISOR)
+        while running > 0:
+            running = finished = 0
+            for k in range(self.active):
+                counts, vertex = self.kernels.step(self.chunks[k])
+                running, finished = running + int(counts[0]), finished + int(counts[1])
+                if plan.connect:
+                    self.collect_vertices(vertex, k * self.chunk)
+            self.count.steps += plan.n_steps
+            if finished >= harvest_at or (running == 0 and finished > 0) or (finished and self.shrinkable(running)):
+                running = self.harvest(running)
+        self.flush_vertices(force=True)
+        self.acc.fold_ready()
+        assert self.acc.complete, "every batch must have folded once all photons finished"
+        stats, counts = self.photons.finish(plan.stop - plan.start)
+        batch_stats, batch_counts = self.acc.finish()
+        for j, (m_stats, m_counts) in enumerate(self.members.finish(plan.stop - plan.start) if self.members is not None else []):
+            stats.update({member_prefix(j) + k: v for k, v in m_stats.items()})
+            counts.update({member_prefix(j) + k: v for k, v in m_counts.items()})
+        info = {
+            "photons": plan.n_launch, "lanes": plan.n_lanes, "lane_steps": self.count.steps, "photon_steps": self.count.photon_steps,
+            "vertices": self.count.vertices, "tail_lanes": self.tail_lanes, "elapsed_s": time.perf_counter() - t0,
+            "engine": "compiled" if plan.compiled else "eager", "torch": torch.__version__,
+        }  # fmt: skip
+        return ShardTally(plan.shard_index, {**stats, **batch_stats}, {**counts, **batch_counts}, plan.stop - plan.start, info)
+
+
+def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int], None] | None = None,
+              members: tuple[float, ...] = ()) -> ShardTally:
+    """Simulate shard `shard_index` of `spec`; a pure function of its inputs.
+
+    members: further albedos (each <= the spec's, one-channel medium, exits or hybrid) tallied
+    from the same walk by reweighting (:mod:`workers.fold.reweight`); member j's quantities carry
+    the prefix ``member_prefix(j)`` in the tally, the spec's own are unchanged.
+
+    progress, if given, is called with the number of photons (all configurations) finished since
+    the last call.  The statistics in the result do not depend on the machine, the thread count
+    or when the shard runs; `info` carries timings and counters that do.
+    """
+    init_engine()
+    return _Runner(ShardPlan.build(spec, shard_index), progress, tuple(members)).run()

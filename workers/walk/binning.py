@@ -1,0 +1,115 @@
+"""The walk's bin lookup (torch): annular sectors on the surface, equal-solid-angle directions.
+
+The layout of the bins is :class:`workers.fold.configs.BinLayout` (numpy).  Conventions in :mod:`workers.walk.conventions`.  A spatial bin is r in [r_lo, r_hi) x theta_s in
+[lo, hi) with area A = (r_hi^2 - r_lo^2)/2 * dtheta_s; a directional bin is uniform in cos(theta_o)
+over [0, 1] and in phi_o over the full turn, so every one has solid angle Omega = dcos * dphi =
+2 pi / (n_cos * n_phi).  Both azimuths are binned centred on the plane of incidence
+(:func:`azimuth_index`, edges :func:`schema.bins.azimuth_edges`): bin 0 = [-h/2, h/2), h = 2 pi / n.
+The radial axis has one extra *overflow* index n_r for r >= r_max: it collects the flux beyond
+the last edge so that Rd is the total diffuse reflectance.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+__all__ = ["wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth", "histogram_index"]
+
+TWO_PI = 2.0 * math.pi
+
+# Angles within this many radians below 2 pi are taken as 0: at normal incidence a photon
+# scattered once leaves exactly radially (phi_o = 0), and float rounding of atan2 may put it a few
+# ulp below zero; the snap reports such an exit as phi_o = 0 rather than 2 pi - ulp.  Binning does
+# not depend on it: both lie in the middle of the centred bin 0 (:func:`azimuth_index`).
+_WRAP_SNAP = 1e-5
+
+
+def wrap_angle(a: torch.Tensor) -> torch.Tensor:
+    """Wrap radians into [0, 2 pi), snapping values within 1e-5 below 2 pi to 0 (see _WRAP_SNAP)."""
+    a = torch.remainder(a, TWO_PI)
+    return torch.where(a >= TWO_PI - _WRAP_SNAP, torch.zeros_like(a), a)
+
+
+def _uniform_edges(lo: float, hi: float, count: int) -> torch.Tensor:
+    # The same construction as schema.uniform_edges, so the lookups match the tables' edges.
+    edges = np.linspace(lo, hi, count + 1, dtype=np.float64)
+    edges[0], edges[-1] = lo, hi
+    return torch.from_numpy(edges)
+
+
+def uniform_index(value: torch.Tensor, lo: float, hi: float, count: int) -> torch.Tensor:
+    """Index of value in `count` equal bins [lo + k h, lo + (k+1) h) over [lo, hi], int64.
+
+    floor((v - lo) / h) may land one bin off the stored edges (schema.uniform_edges) when v is on
+    or within rounding of an edge, so the guess is corrected against those edges: the result is
+    the bin [edges[k], edges[k+1]) that holds v, as a search of the edges gives, without one
+    (torch.bucketize does not fuse into compiled kernels).  Out-of-range values are clamped into
+    the end bins; the closed upper end belongs to the last bin.
+    """
+    edge = _edge_function(float(lo), float(hi), int(count), value.dtype)
+    k = torch.clamp(torch.floor((value - lo) * (count / (hi - lo))).to(torch.int64), 0, count - 1)
+    k = torch.where((value < edge(k)) & (k > 0), k - 1, k)
+    k = torch.where((value >= edge(k + 1)) & (k < count - 1), k + 1, k)
+    return k
+
+
+def _edge_function(lo: float, hi: float, count: int, dtype: torch.dtype):
+    """k -> edges[k] of :func:`_uniform_edges` (in dtype) for an index tensor k in [0, count].
+
+    From lo = 0 (every axis of the tables) the edges are computed, not looked up: numpy's
+    linspace forms edge k < count as k * step, step = (hi - lo) / count, in float64 (plus lo = 0,
+    which changes nothing), and sets the last edge to hi; the same float64 product here gives the
+    same value (tested), and a compiled kernel needs no gather.  Otherwise: a table lookup.
+    """
+    if lo == 0.0:
+        step = (hi - lo) / count
+
+        def edge(k: torch.Tensor) -> torch.Tensor:
+            return torch.where(k >= count, hi, k.to(torch.float64) * step).to(dtype)
+
+        return edge
+    edges = _uniform_edges(lo, hi, count).to(dtype)
+    return lambda k: edges[k]
+
+
+def azimuth_index(a: torch.Tensor, count: int) -> torch.Tensor:
+    """Bin of the azimuth a [rad, any real] among ``count`` bins centred on 0, int64:
+
+        k = floor(((a + h/2) mod 2 pi) / h),   h = 2 pi / count,
+
+    i.e. bin k = [(k - 1/2) h, (k + 1/2) h) modulo 2 pi, bin 0 = [-h/2, h/2) (edges
+    :func:`schema.bins.azimuth_edges`).  Computed as :func:`uniform_index` of the shifted angle
+    over [0, 2 pi), so exact against uniform_edges(0, 2 pi, count) and, up to the rounding of
+    the half-bin shift, against the stored edges.  The mirror -a of an angle inside bin k is
+    inside bin (count - k) mod count.  A shifted angle that rounds up to 2 pi (a a few ulp below
+    -h/2) is in the last bin, as it should be.
+    """
+    half = math.pi / count
+    return uniform_index(torch.remainder(a + half, TWO_PI), 0.0, TWO_PI, count)
+
+
+def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor) -> torch.Tensor:
+    """phi_o in [0, 2 pi): azimuth of the horizontal direction (tx, ty) from the radial (px, py).
+
+    Computed as atan2(p x t, p . t) so it is exact for parallel vectors; at r = 0 the radial
+    direction is +x by convention.
+    """
+    at_origin = (px == 0) & (py == 0)
+    px = torch.where(at_origin, torch.ones_like(px), px)
+    cross = px * ty - py * tx
+    dot = px * tx + py * ty
+    return wrap_angle(torch.atan2(cross, dot))
+
+
+def histogram_index(cfg, comp, spatial, direction, n_sp: int, n_dir: int, n_comp: int = 2):
+    """Index into a flattened [configuration, component, spatial, direction] histogram.
+
+    spatial = ir * n_theta + it among n_sp = (n_r + 1) n_theta bins (overflow included),
+    direction = ic * n_phi + ip among n_dir = n_cos n_phi; n_comp components (single and
+    multiple, or with the total: 3).  Integer tensors or ints; the exit tally, the hybrid and the
+    shard run's connections all index their histograms with it.
+    """
+    return ((cfg * n_comp + comp) * n_sp + spatial) * n_dir + direction

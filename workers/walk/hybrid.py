@@ -1,0 +1,239 @@
+"""The hybrid estimator (the default): single scattering by connections from the first vertex,
+multiple scattering by the exit tally.
+
+Why: the connection estimator (:mod:`workers.walk.connections`) wins single scattering by one to two
+orders of magnitude in efficiency (1 / (variance x CPU s)) and alone resolves it far from the
+entry point, but connecting *every* vertex to *every* bin costs ~100 exit-walk steps per vertex
+and loses multiple scattering by 17-65x (BENCHMARKS.md).  Single scattering only ever comes from
+the first vertex, so:
+
+- ``single``: at the first vertex of every photon, x_1 = s_1 u_0 (s_1 the walk's own first free
+  path, u_0 the refracted incident direction, weight w_0 = 1 - R_spec), the flux leaving through
+  a surface element after this one scattering,
+      f(x_o) = w_0 a p(u_0 . w21) exp(-d) T21(cos_in) cos_in / d^2,
+  is estimated by multiple importance sampling (balance heuristic, one sample per technique) of
+  * the *phase* technique: the walk's own first scattering direction, followed to the surface,
+    density per area q_p = p cos_in / d^2 (as in workers.walk.connections);
+  * K_SAMPLES *stratified uniform* techniques: the spatial bins inside r_max, in flat order
+    r * n_theta + theta, are cut into K contiguous strata; stratum j picks one bin uniformly and a
+    point uniform in (r, theta) of it (theta_s bin k is [(k - 1/2) h, (k + 1/2) h), centred on
+    +x: workers.walk.conventions): density q_j = 1 / (n_j r dr dtheta) in its n_j bins.
+  A point x in stratum j gets the weight q/(q_p + q_j) for the technique q that drew it (only
+  stratum j's density is nonzero there), so every contribution is bounded by w_0 a, as in the
+  full connection estimator, at O(K) cost per photon instead of O(bins) per vertex.
+- ``multiple``: the exit tally of photons that scattered twice or more (their exit bins, G = w,
+  S = w / cos_o); exits after one scattering are not tallied (the connections replace them).
+
+Both parts are unbiased for their component; total = single + multiple.  No weight depends on
+the run's results.  S of a connection sample uses T cos_in / cos_o
+(:func:`workers.walk.optics.transmittance_cos_ratio`), bounded also where cos_o -> 0.
+
+Random numbers: the first vertex is recomputed from the photon's walk stream (draw 0: free path
+and scattering direction, so the phase sample *is* the walk's direction) and the uniform samples
+use the connection purpose of draw 0, block PURPOSE_CONNECT + j for stratum j.  The samples are
+computed when a photon finishes, from its photon index and configuration alone, together with its
+exit, so its contributions are squared per photon (workers.fold.tally).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import torch
+
+from .binning import TWO_PI, azimuth_index, histogram_index, outgoing_azimuth, uniform_index
+from .conventions import PURPOSE_CONNECT, PURPOSE_WALK
+from .harvest import ExitBins, count_le, exit_bins
+from .kernels import compile_kernel
+from .optics import fresnel_transmittance, refracted_cos, sample_exponential, scatter_direction, transmittance_cos_ratio
+from .phase import DEFAULT_PHASE, phase_function
+from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
+from .walk import EXITED, Lanes
+
+__all__ = ["K_SAMPLES", "FirstVertexGeometry", "EntryLayout", "strata", "first_vertex_samples", "photon_entries", "entries_function"]
+
+K_SAMPLES = 2
+"""Stratified uniform samples per photon (fewer if there are fewer spatial bins)."""
+
+
+def strata(n_bins: int, k: int) -> list[tuple[int, int]]:
+    """K contiguous strata [floor(j n / k), floor((j + 1) n / k)) of n bins (k <= n)."""
+    return [(j * n_bins // k, (j + 1) * n_bins // k) for j in range(k)]
+
+
+@dataclass(frozen=True)
+class FirstVertexGeometry:
+    """What the first-vertex connections need, per shard (float32, optical units, like the walk).
+
+    edges: [n_cfg, n_r + 1] radial edges of each configuration's channel; u0x, u0z, w0, albedo,
+    g, k0, k1: per configuration (incident direction inside, 1 - R_spec, HG, Philox key words);
+    n_theta, n_cos, n_phi; eta; k: stratified samples; hg_branch as in WalkParams.
+    """
+
+    edges: torch.Tensor
+    u0x: torch.Tensor
+    u0z: torch.Tensor
+    w0: torch.Tensor
+    albedo: torch.Tensor
+    g: torch.Tensor
+    k0: torch.Tensor
+    k1: torch.Tensor
+    n_theta: int
+    n_cos: int
+    n_phi: int
+    eta: float
+    k: int
+    hg_branch: str
+    phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
+
+    @property
+    def n_r(self) -> int:
+        return self.edges.shape[1] - 1
+
+
+def _direction_index(xo, yo, dx, dy, cos_in, geo: FirstVertexGeometry):
+    cos_o = refracted_cos(cos_in, 1.0 / geo.eta)
+    phi_o = outgoing_azimuth(xo, yo, dx, dy)
+    return uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + azimuth_index(phi_o, geo.n_phi)
+
+
+def _stratum_size(flat_bin: torch.Tensor, n_bins: int, k: int) -> torch.Tensor:
+    """n_j of the stratum holding each flat bin: the stratum is the j with floor(j n / k) <= b."""
+    j = torch.div((flat_bin + 1) * k - 1, n_bins, rounding_mode="floor")  # largest j with j n / k <= b
+    return torch.div((j + 1) * n_bins, k, rounding_mode="floor") - torch.div(j * n_bins, k, rounding_mode="floor")
+
+
+def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVertexGeometry):
+    """(spatial, direction, G, S), each [P, k + 1]: k stratified uniform samples then the phase
+    sample of the first vertex of photons `photon` (int64 [P]) of configurations `cfg`.
+    Computed in float32, as the walk is (the lookups of a sample's bin and its density use the
+    same float32 edges, so the MIS weights are consistent); G and S are returned as float64.
+
+    spatial = r * n_theta + theta (r = n_r beyond r_max: phase sample only); G and S float64 (0
+    where the phase direction points down or is totally reflected).
+    """
+    f32 = torch.float32
+    n_r, n_t = geo.n_r, geo.n_theta
+    n_bins = n_r * n_t
+    c_lo, c_hi = photon_words(photon)
+    k0, k1 = geo.k0[cfg], geo.k1[cfg]
+    zero = torch.zeros_like(c_lo)
+    b0, _, b2, b3 = philox4x32(c_lo, c_hi, zero, zero + PURPOSE_WALK, k0, k1)
+    s1 = sample_exponential(uniform_open(b0))  # the walk's first free path
+    ux, uz = geo.u0x[cfg], geo.u0z[cfg]
+    uy = torch.zeros_like(ux)
+    px, pz = s1 * ux, s1 * uz
+    wa = geo.w0[cfg] * geo.albedo[cfg]
+    g = geo.g[cfg]
+    edges = geo.edges[cfg]  # [P, n_r + 1]
+    dtheta = TWO_PI / n_t
+
+    # Phase technique: the walk's own scattering direction at the vertex.
+    phase = phase_function(geo.phase)
+    cos_t = phase.sample_cos(uniform_halfopen(b2), geo.g[cfg], geo.hg_branch)
+    vx, vy, vz = scatter_direction(ux, uy, uz, cos_t, uniform_halfopen(b3) * (2.0 * torch.pi))
+    up = vz > 0
+    t = -pz / torch.clamp(vz, min=1e-30)
+    xo, yo = px + t * vx, t * vy  # the vertex lies in the incidence plane (y = 0)
+    r = torch.sqrt(xo * xo + yo * yo)
+    ir = torch.clamp(count_le(geo.edges, cfg, r) - 1, 0, n_r)
+    it = azimuth_index(torch.atan2(yo, xo), n_t)
+    inside = ir < n_r
+    irc = torch.clamp(ir, max=n_r - 1)
+    dr = edges.gather(1, irc[:, None] + 1)[:, 0] - edges.gather(1, irc[:, None])[:, 0]
+    sb = irc * n_t + it
+    q_u = torch.where(inside, 1.0 / torch.clamp(_stratum_size(sb, n_bins, geo.k) * r * dr * dtheta, min=1e-30), 0.0)
+    cos_in = torch.clamp(vz, 0.0, 1.0)
+    p = phase.pdf(ux * vx + uz * vz, g)  # = evaluate: sampled exactly (workers.walk.phase)
+    tt = torch.clamp(t * t, min=1e-30)
+    q_p = p * cos_in / tt
+    base = torch.where(up & (q_p > 0), wa * torch.exp(-t) / torch.clamp(q_p + q_u, min=1e-30), 0.0)
+    G_p = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
+    S_p = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (p / tt)
+    sp_p = ir * n_t + it
+    dir_p = _direction_index(xo, yo, vx, vy, cos_in, geo)
+
+    # Stratified uniform techniques: one block of four uniforms per stratum.
+    cols = []
+    for j, (lo, hi) in enumerate(strata(n_bins, geo.k)):
+        u = philox4x32(c_lo, c_hi, zero, zero + (PURPOSE_CONNECT + j), k0, k1)
+        u_bin, u_r, u_t = (uniform_halfopen(x) for x in u[:3])
+        n_j = hi - lo
+        b = lo + torch.clamp((u_bin * n_j).to(torch.int64), max=n_j - 1)
+        jr, jt = torch.div(b, n_t, rounding_mode="floor"), b % n_t
+        r_lo = edges.gather(1, jr[:, None])[:, 0]
+        drj = edges.gather(1, jr[:, None] + 1)[:, 0] - r_lo
+        rr = r_lo + u_r * drj
+        th = (jt.to(f32) - 0.5 + u_t) * dtheta  # uniform in the centred bin [(jt - 1/2) h, (jt + 1/2) h)
+        xs, ys = rr * torch.cos(th), rr * torch.sin(th)
+        dx, dy, dz = xs - px, ys, -pz
+        d2 = dx * dx + dy * dy + dz * dz
+        d = torch.sqrt(d2)
+        cin = dz / d
+        pj = phase.pdf((ux * dx + uz * dz) / d, g)
+        qpj = pj * cin / d2
+        # q_j is infinite at r = 0: the clamp makes this sample's weight exactly 0 there.
+        qj = 1.0 / torch.clamp(n_j * rr * drj * dtheta, min=1e-30)
+        bj = wa * torch.exp(-d) / (qpj + qj)
+        cols.append((b, _direction_index(xs, ys, dx, dy, cin, geo), bj * fresnel_transmittance(cin, 1.0 / geo.eta) * qpj,
+                     bj * transmittance_cos_ratio(cin, 1.0 / geo.eta) * (pj / d2)))  # fmt: skip
+    cols.append((sp_p, dir_p, G_p, S_p))
+    spatial, direction, G, S = (torch.stack(c, dim=1) for c in zip(*cols))
+    return spatial, direction, G.double(), S.double()
+
+
+@dataclass(frozen=True)
+class EntryLayout:
+    """Histogram geometry of the hybrid's entries (workers.fold.tally): n_sp = (n_r + 1) n_theta
+    spatial and n_dir = n_cos n_phi direction bins; square_offsets: where the squared sums of
+    bins_G, bins_S, radial_G and Rd start in one histogram (workers.fold.tally._Layout)."""
+
+    n_sp: int
+    n_dir: int
+    n_theta: int
+    square_offsets: tuple[int, int, int, int]
+
+
+def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVertexGeometry, lay: EntryLayout):
+    """Every entry of the photons finished in lanes idx, and their squares per photon.
+
+    Per photon E = k + 2 entries: the k uniform and the phase first-vertex samples (single) and
+    the exit if it scattered two or more times (multiple; G = S = 0 otherwise).  Returns
+    (flat2, G, S) [P, E] with flat2 the index [cfg, comp (0/1), spatial, direction], and
+    (square_key, square_weight) [8, P, E]: for bins_G, bins_S, radial_G, Rd, each for the entry's
+    component and for total, the key into the squares histogram and x (x + 2 sum of the later
+    entries of the photon with the same key): summed per key, the sum over photons of the
+    photon's squared contribution (workers.fold.tally.photon_moments, here fused into the kernel).
+    """
+    cfg = lanes.cfg[idx]
+    spatial, direction, g, s = first_vertex_samples(lanes.photon[idx], cfg, geo)
+    flat, _batch, ge, se = exit_bins(idx, lanes, bins)
+    keep = (lanes.status[idx] == EXITED) & (lanes.nscat[idx] >= 2)
+    spatial = torch.cat((spatial, (torch.div(flat, lay.n_dir, rounding_mode="floor") % lay.n_sp)[:, None]), dim=1)
+    direction = torch.cat((direction, (flat % lay.n_dir)[:, None]), dim=1)
+    g = torch.cat((g, torch.where(keep, ge, 0.0)[:, None]), dim=1)
+    s = torch.cat((s, torch.where(keep, se, 0.0)[:, None]), dim=1)
+    comp = torch.zeros_like(spatial)
+    comp[:, -1] = 1
+    c = cfg[:, None]
+    flat2 = histogram_index(c, comp, spatial, direction, lay.n_sp, lay.n_dir)
+    keys, values = [], []
+    o_bins_g, o_bins_s, o_radial, o_rd = lay.square_offsets
+    for c3 in (comp, torch.full_like(comp, 2)):
+        b = histogram_index(c, c3, spatial, direction, lay.n_sp, lay.n_dir, n_comp=3)
+        n_r1 = lay.n_sp // lay.n_theta
+        keys += [b + o_bins_g, b + o_bins_s, (c * 3 + c3) * n_r1 + torch.div(spatial, lay.n_theta, rounding_mode="floor") + o_radial,
+                 c * 3 + c3 + o_rd]  # fmt: skip
+        values += [g, s, g, g]
+    key, value = torch.stack(keys), torch.stack(values)
+    e = key.shape[-1]
+    cross = [torch.where(key[..., j + 1 :] == key[..., j : j + 1], value[..., j + 1 :], 0.0).sum(dim=-1) for j in range(e - 1)]
+    cross = torch.stack([*cross, torch.zeros_like(cross[0])], dim=-1)
+    return flat2, g, s, key, value * (value + 2.0 * cross)
+
+
+@lru_cache(maxsize=None)
+def entries_function(compiled: bool):
+    """:func:`photon_entries` compiled for one block size (the caller pads) or eager."""
+    return compile_kernel(photon_entries, "hybrid_entries") if compiled else photon_entries

@@ -1,0 +1,267 @@
+"""The vectorized random walk: photon lanes, one step, refill of finished lanes.
+
+A fixed array of *lanes* holds photons in flight.  :func:`walk_step` advances every running lane
+by one interaction (fly, hit the boundary or collide, Fresnel, absorb / roulette, scatter) with
+masks and no Python branching on values, so torch.compile fuses it into a few passes over memory;
+finished lanes keep their final state until the shard runner harvests them and refills the lane
+with the next photon (:func:`refill_lanes`, run by :func:`workers.walk.harvest.finish_and_refill`).  All lengths are optical (sigma_t = 1, see
+:mod:`workers.walk.conventions`), so one walk serves every channel and incidence angle at once.
+
+Random numbers come from Philox keyed by (seed, configuration) with counter (photon, step): a
+photon's path does not depend on its lane, the lane count or the thread count.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, fields, replace
+from functools import lru_cache
+
+import torch
+
+from .conventions import PURPOSE_WALK
+from .kernels import compile_kernel
+from .optics import fresnel_dielectric, sample_exponential, scatter_direction
+from .phase import DEFAULT_PHASE, phase_function
+from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
+
+__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "ConfigTable", "STEP_FIELDS", "walk_step", "step_function", "refill_lanes", "compile_enabled"]
+
+# Lane status codes (int32: an int8 status made inductor convert masks element by element).
+RUNNING = 0  # photon in flight
+EXITED = 1  # refracted out through the surface; x, y and u hold the crossing
+ABSORBED = 2  # killed by analog absorption or by Russian roulette
+TRUNCATED = 3  # reached the path cap (max_scatter); w is the truncated weight
+EMPTY = 4  # no photon: the shard has run out of photons to launch
+
+
+@dataclass(frozen=True)
+class WalkParams:
+    """Scalars of a walk that are the same for every lane (compile-time constants).
+
+    inv_eta: 1/eta, the relative index seen from inside at the surface.
+    analog: absorption by killing with probability 1 - albedo (else weights + roulette).
+    w_min, survival: Russian roulette: a weight below w_min survives with probability `survival`
+    and is divided by it (unbiased: E[w'] = w).
+    max_scatter: path cap in scattering events.
+    """
+
+    inv_eta: float
+    analog: bool
+    max_scatter: int
+    w_min: float = 1e-3
+    survival: float = 0.1
+    hg_branch: str = "mixed"  # "large" / "small": every |g| >= 0.1 / < 0.1 (see sample_hg)
+    phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
+
+
+@dataclass
+class Lanes:
+    """State of every lane, structure-of-arrays (one tensor per field, length = lane count)."""
+
+    x: torch.Tensor  # float32 optical position
+    y: torch.Tensor
+    z: torch.Tensor
+    ux: torch.Tensor  # float32 unit direction of travel
+    uy: torch.Tensor
+    uz: torch.Tensor
+    w: torch.Tensor  # float32 weight (power) carried
+    absorbed: torch.Tensor  # float32 weight deposited by absorption so far
+    nscat: torch.Tensor  # int32 scattering events so far
+    step: torch.Tensor  # int32 random draw index (steps taken)
+    photon: torch.Tensor  # int64 photon index within its configuration
+    cfg: torch.Tensor  # int64 configuration index (incidence angle x channel)
+    status: torch.Tensor  # int32 status code
+    albedo: torch.Tensor  # float32 per-lane copy of the configuration's albedo
+    g: torch.Tensor  # float32 per-lane copy of the configuration's HG g
+    k0: torch.Tensor  # int32 Philox key words of the configuration (bit patterns, workers.walk.rng)
+    k1: torch.Tensor
+    c_lo: torch.Tensor  # int32 Philox counter words 0 and 1: the photon index, low and high half
+    c_hi: torch.Tensor
+
+    @classmethod
+    def empty(cls, n: int) -> "Lanes":
+        f32 = lambda: torch.zeros(n, dtype=torch.float32)  # noqa: E731
+        i64 = lambda: torch.zeros(n, dtype=torch.int64)  # noqa: E731
+        i32 = lambda: torch.zeros(n, dtype=torch.int32)  # noqa: E731
+        return cls(
+            x=f32(), y=f32(), z=f32(), ux=f32(), uy=f32(), uz=f32(), w=f32(), absorbed=f32(),
+            nscat=i32(), step=i32(), photon=i64(), cfg=i64(),
+            status=torch.full((n,), EMPTY, dtype=torch.int32),
+            albedo=f32(), g=f32(), k0=i32(), k1=i32(), c_lo=i32(), c_hi=i32(),
+        )  # fmt: skip
+
+    def tensors(self) -> list[torch.Tensor]:
+        """Every field, in declaration order (for moves that treat all lanes' fields alike)."""
+        return [getattr(self, f.name) for f in fields(self)]
+
+    def view(self, start: int, stop: int) -> "Lanes":
+        """Lanes [start, stop) as views: writes through a view change these lanes."""
+        return Lanes(*(t[start:stop] for t in self.tensors()))
+
+    def copy_from(self, other: "Lanes", names: tuple[str, ...]) -> None:
+        """Write the fields `names` of other into these lanes, in place."""
+        for name in names:
+            getattr(self, name).copy_(getattr(other, name))
+
+
+@dataclass(frozen=True)
+class ConfigTable:
+    """Per-configuration constants as tensors indexed by configuration (built by workers.run.plan)."""
+
+    albedo: torch.Tensor  # float32
+    g: torch.Tensor  # float32
+    w0: torch.Tensor  # float32, 1 - R_spec
+    ux0: torch.Tensor  # float32, refracted incident direction
+    uz0: torch.Tensor
+    k0: torch.Tensor  # int32 bit patterns
+    k1: torch.Tensor
+
+
+# The fields of a lane that a step changes; the others are fixed while its photon is in flight.
+STEP_FIELDS = ("x", "y", "z", "ux", "uy", "uz", "w", "absorbed", "nscat", "step", "status")
+
+
+def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor, ...]]:
+    """Advance every RUNNING lane by one interaction; returns the new state and vertex data.
+
+    One Philox block per step gives u_path (free path), u_dec (Fresnel / roulette / absorption
+    decision), u_cos and u_phi (scattering direction).  With s = -ln(u_path):
+    - z + s uz >= 0: the path reaches the surface at t = -z/uz.  With probability
+      Fr(uz, 1/eta) the photon reflects specularly (uz -> -uz) and continues from the surface
+      (the free path is memoryless, so a fresh one is drawn next step); otherwise it exits.
+    - otherwise: a collision at x + s u.  Weights mode: the absorbed share w (1 - albedo) is
+      deposited and w *= albedo, then Russian roulette below w_min.  Analog mode: the photon is
+      absorbed with probability 1 - albedo.  A surviving photon scatters into a new direction
+      sampled from Henyey-Greenstein; after max_scatter scatterings it is truncated.
+    Returns the lanes after the step (new tensors for STEP_FIELDS, the others shared) and
+    (collided, ux_in, uy_in, uz_in, w_in): the vertices of this step with the direction and
+    weight arriving there, for the connection estimator.  The new direction is computed on every
+    collided lane (also one killed afterwards), so it doubles as the phase-function sample of the
+    connection's multiple importance sampling.
+    """
+    x, y, z, ux, uy, uz, w = lanes.x, lanes.y, lanes.z, lanes.ux, lanes.uy, lanes.uz, lanes.w
+    status, step, albedo = lanes.status, lanes.step, lanes.albedo
+    running = status == RUNNING
+    b0, b1, b2, b3 = philox4x32(lanes.c_lo, lanes.c_hi, step, torch.zeros_like(step) + PURPOSE_WALK, lanes.k0, lanes.k1)
+    s = sample_exponential(uniform_open(b0))
+    u_dec = uniform_halfopen(b1)
+    z_new = z + s * uz
+    hit = running & (z_new >= 0.0)
+    coll = running & (z_new < 0.0)
+
+    # Boundary: uz > 0 on hit lanes; elsewhere the distance is unused, the clamp avoids 0/0.
+    t = -z / torch.clamp(uz, min=1e-30)
+    reflect = hit & (u_dec < fresnel_dielectric(uz, p.inv_eta))
+    escape = hit & ~reflect
+
+    # Collision: absorption.
+    if p.analog:
+        killed = coll & (u_dec >= albedo)
+        absorbed_new = lanes.absorbed + torch.where(killed, w, 0.0)
+        w_new = w
+    else:
+        absorbed_new = lanes.absorbed + torch.where(coll, w * (1.0 - albedo), 0.0)
+        w_att = torch.where(coll, w * albedo, w)
+        low = coll & (w_att < p.w_min)
+        survive = u_dec < p.survival
+        killed = low & ~survive
+        w_new = torch.where(low, torch.where(survive, w_att * (1.0 / p.survival), 0.0), w_att)
+    nscat_new = lanes.nscat + coll.to(torch.int32)
+    truncated = coll & ~killed & (nscat_new >= p.max_scatter)
+
+    # Collision: new direction (Henyey-Greenstein), on every collided lane.
+    cos_t = phase_function(p.phase).sample_cos(uniform_halfopen(b2), lanes.g, p.hg_branch)
+    phi = uniform_halfopen(b3) * (2.0 * torch.pi)
+    nx, ny, nz = scatter_direction(ux, uy, uz, cos_t, phi)
+
+    x_new = torch.where(hit, x + t * ux, torch.where(coll, x + s * ux, x))
+    y_new = torch.where(hit, y + t * uy, torch.where(coll, y + s * uy, y))
+    z_new = torch.where(hit, 0.0, torch.where(coll, z_new, z))
+    ux_new = torch.where(coll, nx, ux)
+    uy_new = torch.where(coll, ny, uy)
+    uz_new = torch.where(coll, nz, torch.where(reflect, -uz, uz))
+    status_new = torch.where(
+        escape,
+        EXITED,
+        torch.where(killed, ABSORBED, torch.where(truncated, TRUNCATED, status)),
+    )
+    step_new = step + running.to(torch.int32)
+    after = replace(
+        lanes, x=x_new, y=y_new, z=z_new, ux=ux_new, uy=uy_new, uz=uz_new, w=w_new, absorbed=absorbed_new, nscat=nscat_new,
+        step=step_new, status=status_new,
+    )  # fmt: skip
+    return after, (coll, ux, uy, uz, w)
+
+
+def _step_inplace(lanes: Lanes, p: WalkParams, n_steps: int, want_vertices: bool):
+    """Run n_steps steps writing the state back into `lanes` in place.
+
+    Returns (counts, vertex): counts = int64 [running, finished] lanes after the steps (finished =
+    EXITED, ABSORBED or TRUNCATED, waiting for harvest); vertex = the last step's vertex data
+    (collided, ux_in, uy_in, uz_in, w_in; see :func:`walk_step`) if want_vertices, else None.
+    A tuple, not a dataclass: see :func:`workers.walk.kernels.compile_kernel` on results.
+    """
+    vertex = None
+    cur = lanes
+    for _ in range(n_steps):
+        cur, vertex = walk_step(cur, p=p)
+    if want_vertices:
+        # The arrival direction and weight are the old state, overwritten just below: copy them.
+        vertex = tuple(v.clone() for v in vertex)
+    lanes.copy_from(cur, STEP_FIELDS)
+    new_status = cur.status
+    counts = torch.stack(((new_status == RUNNING).sum(), ((new_status != RUNNING) & (new_status != EMPTY)).sum()))
+    return counts, vertex
+
+
+def refill_lanes(lanes: Lanes, table: ConfigTable, launch: torch.Tensor) -> None:
+    """Start new photons in every lane that is not RUNNING, in lane order, in place.
+
+    launch = int64 [start photon, next launch number, launches in the shard, configurations]:
+    the k-th free lane (k = 0, 1, ...) gets launch number q = next + k, i.e. photon
+    start + q // n_cfg of configuration q % n_cfg, while q < launches; the remaining free lanes
+    become EMPTY.  A new photon sits at the origin travelling along the refracted incident
+    direction of its configuration with weight 1 - R_spec.
+    """
+    L, T = lanes, table
+    start, nxt, n_launch, n_cfg = launch[0], launch[1], launch[2], launch[3]
+    free = L.status != RUNNING
+    q = nxt + torch.cumsum(free.to(torch.int64), 0) - 1
+    new = free & (q < n_launch)
+    q = torch.where(new, q, 0)  # keeps the gathers below in range on lanes that are not refilled
+    c = q % n_cfg
+    zero = torch.zeros_like(L.x)
+    for dst, val in ((L.x, zero), (L.y, zero), (L.z, zero), (L.uy, zero), (L.absorbed, zero),
+                     (L.ux, T.ux0[c]), (L.uz, T.uz0[c]), (L.w, T.w0[c]), (L.albedo, T.albedo[c]), (L.g, T.g[c])):  # fmt: skip
+        dst.copy_(torch.where(new, val, dst))
+    L.nscat.copy_(torch.where(new, 0, L.nscat))
+    L.step.copy_(torch.where(new, 0, L.step))
+    pid = start + q // n_cfg
+    L.photon.copy_(torch.where(new, pid, L.photon))
+    lo, hi = photon_words(pid)
+    L.c_lo.copy_(torch.where(new, lo, L.c_lo))
+    L.c_hi.copy_(torch.where(new, hi, L.c_hi))
+    L.cfg.copy_(torch.where(new, c, L.cfg))
+    L.k0.copy_(torch.where(new, T.k0[c], L.k0))
+    L.k1.copy_(torch.where(new, T.k1[c], L.k1))
+    L.status.copy_(torch.where(new, RUNNING, torch.where(free, EMPTY, L.status)))
+
+
+def compile_enabled() -> bool:
+    """Whether the walk runs through torch.compile (BSSRDF_COMPILE=0 selects the eager path).
+
+    Both paths compute the same physics; they agree within error bars, not bitwise (the fused
+    kernels round differently), so the mode is recorded with every result.
+    """
+    return os.environ.get("BSSRDF_COMPILE", "1") not in ("0", "false", "no")
+
+
+@lru_cache(maxsize=None)
+def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bool):
+    """The (possibly compiled) in-place stepping function for these constants."""
+
+    def fn(lanes: Lanes):
+        return _step_inplace(lanes, p, n_steps, want_vertices)
+
+    return compile_kernel(fn, "walk_step", (p, n_steps, want_vertices)) if compiled else fn
