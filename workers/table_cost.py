@@ -22,6 +22,14 @@ the cost of the table that meets a relative error of ``node_rel`` (1 %) in every
 - the same, separately, for the *major* nodes only: those that carry >= 1e-3 of the medium's
   total Rd (pbrt's rhoEff) each.
 
+``--path-roulette START,SURVIVAL`` sets the spec's ``path_roulette`` (:mod:`schema.roulette`).
+
+A node's relative error is itself estimated from its events; where they are few and
+heavy-tailed (the far nodes, ~9 mean free paths, of albedos below ~0.5: 30-100 events at 2e5
+photons) it comes out low, and so does the projection: measured, 2e5 photons projected 2-3e8
+photons for the far node of albedo 0.078 where 2e6 gave 2.9e9 (BENCHMARKS.md).  Project such
+albedos from ``--photons 2000000`` or more.
+
 ``--yardstick S`` (steps per CPU-second of a reference walk measured in the same minutes, e.g. a
 hand-vectorised C walk of M2 on this core, timed in user CPU seconds) adds figures normalised to the reference speed
 ``--yardstick-ref`` (default YARDSTICK_REF): CPU-hours x S / ref, which takes out how fast the
