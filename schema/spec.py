@@ -49,6 +49,7 @@ from . import media as _media
 from .medium import ChannelOptics, MediumSpec
 from .names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
 from .sweep import SweepSpec
+from .roulette import PathRoulette
 from .target import TargetSpec
 
 __all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE", "MAX_TASKS"]
@@ -122,6 +123,11 @@ class SimulationSpec(BaseModel):
     )
     max_scatter: Annotated[int, Interval(1, 10_000_000, what="max_scatter")] = Field(
         100_000, description="Path cap in scattering events; the truncated weight is reported."
+    )
+    path_roulette: PathRoulette | None = Field(
+        None, description="Russian roulette on path length (off by default): a photon still in flight "
+        "after start steps survives with probability survival, weight divided by it, and again at every "
+        "doubling of its step count; unbiased; see schema/roulette.py.",
     )
     target: TargetSpec | None = Field(
         None, description="Run shards in order until these relative standard errors are reached "
@@ -355,9 +361,9 @@ class SimulationSpec(BaseModel):
         """The fully-defaulted, normalised model as JSON with sorted keys and no whitespace.
 
         Of "medium" and "sweep" only the one given appears, so a single-medium spec hashes as
-        it did before sweeps existed; likewise "target" only when given."""
+        it did before sweeps existed; likewise "target" and "path_roulette" only when given."""
         data = self.model_dump(mode="json")
-        for form in ("medium", "sweep", "target"):
+        for form in ("medium", "sweep", "target", "path_roulette"):
             if data[form] is None:
                 del data[form]
         return json.dumps(data, sort_keys=True,

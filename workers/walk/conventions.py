@@ -60,5 +60,8 @@ TALLIED_COMPONENTS = ("single", "multiple")
 PURPOSE_WALK = 0
 PURPOSE_CONNECT = 1
 """Counter word c3: 0 for walk steps, 1 + k for the k-th block of connection samples."""
+PURPOSE_ROULETTE = 0x7FFFFFFF
+"""Counter word c3 of a path-length roulette round (workers.walk.path_roulette; c2 = the step count at
+the round): above any connection block's 1 + k."""
 
-__all__ = ["TALLIED_COMPONENTS", "PURPOSE_WALK", "PURPOSE_CONNECT"]
+__all__ = ["TALLIED_COMPONENTS", "PURPOSE_WALK", "PURPOSE_CONNECT", "PURPOSE_ROULETTE"]
