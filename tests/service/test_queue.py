@@ -116,7 +116,7 @@ def test_failures_retry_then_fail_job_with_error_kept(store):
 
 
 def test_a_final_failure_fails_the_job_at_the_first_attempt(store):
-    job = store.submit(FakeSpec(shards=2))
+    job = store.submit(queue_spec(shards=2))
     lease = store.claim("w", 30)
     assert store.fail_task(lease, "NonFiniteResult: medium 0", final=True) is False
     failed = store.get_job(job.id)
