@@ -90,6 +90,15 @@ def _compiling(name: str):
         tell(False)
 
 
+INDUCTOR_CONFIG = {"max_fusion_size": 512}
+"""Inductor settings every kernel is compiled with (part of the artifact key).  The exit walk's
+call unrolls EXIT_STEPS_PER_CALL steps; with inductor's default ``max_fusion_size`` (64 nodes) it
+emits one loop over the lane arrays per step, and the step is bound by memory traffic (16,384
+lanes of state overflow a 512 KiB L2).  512 lets the unrolled steps fuse into fewer loops: M1
++47 %, M2 +22 % steps per CPU-second on an AVX2 machine, the same tables to the bit, about the
+same compile time (BENCHMARKS.md)."""
+
+
 def cache_dir() -> Path | None:
     """Where artifacts are kept, or None when the cache is switched off."""
     env = os.environ.get("BSSRDF_KERNEL_CACHE", "")
@@ -125,11 +134,11 @@ def _describe(v: Any) -> Any:
 
 def artifact_key(name: str, constants: Any, args: tuple) -> str:
     """sha256 naming the artifact of kernel `name` with these constants, called with `args`
-    (see the module docstring for what it covers; inductor settings from the environment are
-    not part of it)."""
+    (see the module docstring for what it covers; INDUCTOR_CONFIG is part of it, inductor
+    settings from the environment are not)."""
     parts = (
         name, repr(constants), _describe(args), torch.__version__, sys.version_info[:2], torch.backends.cpu.get_cpu_capability(),
-        torch.get_num_threads(), torch.is_grad_enabled(), source_digest(),
+        torch.get_num_threads(), torch.is_grad_enabled(), source_digest(), sorted(INDUCTOR_CONFIG.items()),
     )  # fmt: skip
     return hashlib.sha256(repr(parts).encode()).hexdigest()
 
@@ -203,7 +212,7 @@ class _Kernel:
     def _obtain(self, args: tuple) -> Callable:
         init_engine()  # the GIL-free binding template must be in place before inductor builds one
         rng.native_wide_multiply()  # decided outside the trace (the traced code only reads it)
-        compiler = torch.compile(self.fn, fullgraph=True, dynamic=False)
+        compiler = torch.compile(self.fn, fullgraph=True, dynamic=False, options=dict(INDUCTOR_CONFIG))
         directory = cache_dir()
         if directory is None or not hasattr(compiler, "aot_compile"):
             self.lazy.add(id(compiler))
@@ -216,7 +225,8 @@ class _Kernel:
         with _compiling(self.name), _file_lock(path):
             if _stamp(path) not in (None, stamp) and (loaded := _load(path)) is not None:
                 return loaded
-            compiled = compiler.aot_compile((args, {}))
+            with torch._inductor.config.patch(INDUCTOR_CONFIG):
+                compiled = compiler.aot_compile((args, {}))
             try:
                 compiled.save_compiled_function(str(path))
             except OSError as exc:  # e.g. a read-only home in a container: run, just do not keep it
