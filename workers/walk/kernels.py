@@ -93,10 +93,10 @@ def _compiling(name: str):
 INDUCTOR_CONFIG = {"max_fusion_size": 512}
 """Inductor settings every kernel is compiled with (part of the artifact key).  The exit walk's
 call unrolls EXIT_STEPS_PER_CALL steps; with inductor's default ``max_fusion_size`` (64 nodes) it
-emits one loop over the lane arrays per step, and the step is bound by memory traffic (16,384
-lanes of state overflow a 512 KiB L2).  512 lets the unrolled steps fuse into fewer loops: M1
-+47 %, M2 +22 % steps per CPU-second on an AVX2 machine, the same tables to the bit, about the
-same compile time (BENCHMARKS.md)."""
+emits about one loop over the lane arrays per step, and the step is bound by the memory traffic
+of those passes.  512 lets the unrolled steps fuse into fewer loops: paired on a 2-core Xeon
+(AVX-512), exit walk M1 +37-46 %, M2 +13-22 %, hybrid M1 +38-51 % steps per CPU-second; the same
+tables to the bit and about the same compile time (BENCHMARKS.md)."""
 
 
 def cache_dir() -> Path | None:
