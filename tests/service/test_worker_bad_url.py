@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.service.bad_url import NOT_A_JOB_STORE, assert_refused, pg_refused_urls
 from tests.service.conftest import pg_base_url
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -23,48 +24,22 @@ def _worker(tmp_path: Path, *args: str, env: dict | None = None) -> subprocess.C
     return subprocess.run(cmd, cwd=tmp_path, env=full, capture_output=True, text=True, timeout=120)
 
 
-def _refused(out: subprocess.CompletedProcess, *needles: str) -> None:
-    lines = out.stderr.strip().splitlines()
-    assert out.returncode == 2, (out.returncode, out.stderr[-3000:])
-    assert len(lines) == 1 and lines[0].startswith("bssrdf worker: "), out.stderr[-3000:]
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-
-
 def test_sqlite_in_a_missing_directory_is_refused_and_not_created(tmp_path):
     missing = tmp_path / "nonexistent" / "dir"
     out = _worker(tmp_path, "--db", f"sqlite:///{missing / 'jobs.sqlite'}")
-    _refused(out, str(missing), "does not exist")
+    assert_refused(out, "bssrdf worker", str(missing), "does not exist")
     assert not (tmp_path / "nonexistent").exists()
 
 
-@pytest.mark.parametrize("url, needle", [
-    ("notaurl", "'notaurl' is not a database URL"),
-    ("mysql://u@h/db", "sqlite:///FILE or postgresql+psycopg://"),
-    ("sqlite://", "SQLite file"),
-])
+@pytest.mark.parametrize("url, needle", NOT_A_JOB_STORE)
 def test_a_url_that_is_not_a_job_store_is_refused(tmp_path, url, needle):
-    _refused(_worker(tmp_path, "--db", url), needle)
-
-
-def _pg_variants():
-    base = pg_base_url()
-    if base is None:
-        return []
-    from sqlalchemy.engine import make_url
-
-    u = make_url(base)
-    return [
-        pytest.param(u.set(port=(u.port or 5432) + 1).render_as_string(False), "Connection refused", id="port"),
-        pytest.param(u.set(database="no_such_database").render_as_string(False), "no_such_database", id="database"),
-        pytest.param(u.set(username="no_such_user").render_as_string(False), "no_such_user", id="user"),
-    ]
+    assert_refused(_worker(tmp_path, "--db", url), "bssrdf worker", needle)
 
 
 @pytest.mark.skipif(pg_base_url() is None, reason="PostgreSQL tests need BSSRDF_TEST_POSTGRES_URL")
-@pytest.mark.parametrize("url, needle", _pg_variants())
+@pytest.mark.parametrize("url, needle", pg_refused_urls(with_port=True))
 def test_a_postgresql_server_database_or_user_that_is_not_there(tmp_path, url, needle):
-    _refused(_worker(tmp_path, "--db", url), "cannot reach the job store", needle)
+    assert_refused(_worker(tmp_path, "--db", url), "bssrdf worker", "cannot reach the job store", needle)
 
 
 def test_the_embedded_default_creates_its_own_directory(tmp_path):
