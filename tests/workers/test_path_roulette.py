@@ -28,7 +28,7 @@ import torch
 from schema import SpecError
 from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
 from tests.support.tables import bitwise_equal
-from tests.workers.test_shared_walks import ALBEDOS, MIN_EVENTS, TOTAL, sweep_results, sweep_spec
+from tests.workers.test_shared_walks import ALBEDOS, TOTAL, rows_z, sweep_results, sweep_spec
 from workers.walk.path_roulette import check_steps_per_call, roulette_round
 from workers.run.simulate import simulate_sweep
 from workers.walk.walk import ABSORBED, EXITED, RUNNING, Lanes
@@ -126,19 +126,7 @@ def pair(request):
 @pytest.mark.slow
 def test_roulette_shared_walks_agree_with_plain_independent_walks_in_every_bin(pair, walk_stats):
     est, rr, plain = pair
-    z, n_bins = [], 0
-    for a, b in zip(rr, plain):
-        ea, eb = a.events(f"{est}/radial_G")[0, TOTAL], b.events(f"{est}/radial_G")[0, TOTAL]
-        keep = (ea >= MIN_EVENTS) & (eb >= MIN_EVENTS)  # chosen by events, never by the errors
-        n_bins += int(keep.sum())
-        for name in (f"{est}/radial_G", f"{est}/Rd", "walk/absorbed"):
-            ma, mb, sa, sb = a.mean(name)[0], b.mean(name)[0], a.stderr(name)[0], b.stderr(name)[0]
-            if name.endswith("radial_G"):
-                ma, mb, sa, sb = ma[TOTAL][keep], mb[TOTAL][keep], sa[TOTAL][keep], sb[TOTAL][keep]
-            elif name.endswith("Rd"):
-                ma, mb, sa, sb = ma[TOTAL], mb[TOTAL], sa[TOTAL], sb[TOTAL]
-            z.append(np.atleast_1d(walk_stats.z(ma, sa, mb, sb)))
-    z = np.concatenate(z)
+    z, n_bins = rows_z(rr, plain, est)
     dof = min(r.dof(f"{est}/Rd") for r in rr + plain)
     what = f"{est}: roulette {ROULETTE} shared (seed 1) against plain independent (seed 2), {len(ALBEDOS)} albedos, {n_bins} bins"
     assert n_bins >= 60, what

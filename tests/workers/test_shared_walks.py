@@ -19,6 +19,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from schema import SpecError, parse_spec
+from tests.conftest import WalkStats
 from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
 from tests.support.tables import bitwise_equal
 from workers.fold.output import write_tables
@@ -133,12 +134,14 @@ def pair(request):
     return est, sweep_results(sweep_spec(est, "shared", 1, 2**16)), sweep_results(sweep_spec(est, "independent", 2, 2**16))
 
 
-def test_reweighted_albedos_agree_with_their_own_walks_in_every_bin(pair, walk_stats):
-    est, shared, indep = pair
+def rows_z(first, second, est: str) -> tuple[np.ndarray, int]:
+    """z of every albedo row of `first` against `second` (lists of Results, albedo by albedo):
+    Rd, absorbed power and every radial bin with >= MIN_EVENTS events in both (chosen by events,
+    never by the errors); and the number of such bins."""
     z, n_bins = [], 0
-    for a, b in zip(shared, indep):
+    for a, b in zip(first, second):
         ea, eb = a.events(f"{est}/radial_G")[0, TOTAL], b.events(f"{est}/radial_G")[0, TOTAL]
-        keep = (ea >= MIN_EVENTS) & (eb >= MIN_EVENTS)  # chosen by events, never by the errors
+        keep = (ea >= MIN_EVENTS) & (eb >= MIN_EVENTS)
         n_bins += int(keep.sum())
         for name in (f"{est}/radial_G", f"{est}/Rd", "walk/absorbed"):
             ma, mb = a.mean(name)[0], b.mean(name)[0]
@@ -147,8 +150,13 @@ def test_reweighted_albedos_agree_with_their_own_walks_in_every_bin(pair, walk_s
                 ma, mb, sa, sb = ma[TOTAL][keep], mb[TOTAL][keep], sa[TOTAL][keep], sb[TOTAL][keep]
             elif name.endswith("Rd"):
                 ma, mb, sa, sb = ma[TOTAL], mb[TOTAL], sa[TOTAL], sb[TOTAL]
-            z.append(np.atleast_1d(walk_stats.z(ma, sa, mb, sb)))
-    z = np.concatenate(z)
+            z.append(np.atleast_1d(WalkStats.z(ma, sa, mb, sb)))
+    return np.concatenate(z), n_bins
+
+
+def test_reweighted_albedos_agree_with_their_own_walks_in_every_bin(pair, walk_stats):
+    est, shared, indep = pair
+    z, n_bins = rows_z(shared, indep, est)
     dof = min(r.dof(f"{est}/Rd") for r in shared + indep)
     what = f"{est}: shared (seed 1) against independent (seed 2) walks, {len(ALBEDOS)} albedos, {n_bins} radial bins"
     assert n_bins >= 60, what
