@@ -104,9 +104,9 @@ class _TimedStore(JobStore):
         with self.stats.lock:
             self.stats.commits[(lease.job_id, lease.shard_index)] += 1
 
-    def fail_task(self, lease, error):
+    def fail_task(self, lease, error, *, final=False):
         self.stats.error(f"task failed: {error}")
-        return super().fail_task(lease, error)
+        return super().fail_task(lease, error, final=final)
 
 
 class FleetWorker(Worker):

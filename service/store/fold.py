@@ -159,13 +159,12 @@ class FoldMixin(StoreBase):
         between the move and the commit, the directory is an orphan no catalog row points to
         (the next publisher of that version replaces it).
 
-        On both backends the move happens outside the transaction that writes, so a stalled
-        move holds no row and no write lock: only the next publish of the same name waits for
-        it. SQLite, whose write lock is the whole database's: the name is locked in files beside
+        On both backends a stalled move holds no row lock and no write lock: only the next
+        publish of the same name waits for it. SQLite, whose write lock is the whole database's: the name is locked in files beside
         the database (:meth:`_sqlite_name_lock`). PostgreSQL: by the name's advisory lock
-        (:meth:`_lock_name`), held by a transaction of its own that writes nothing, around the
-        read of the next number, the move and the commit (in a second transaction, which the
-        next holder of the lock sees committed: READ COMMITTED).
+        (:meth:`_lock_name`), taken by the publish's one transaction, which writes nothing until
+        the files are in place and then locks the job row, finishes the lease and records the
+        version (one connection: a publish never holds one while it waits for another).
         """
         if lease.kind != TaskKind.MERGE:
             raise ValueError(f"complete_merge needs a merge lease; received a {lease.kind} lease")
@@ -182,20 +181,18 @@ class FoldMixin(StoreBase):
                         raise StoreError(f"dataset {name!r} version {version} was taken during its publish")
                     self._record_version(conn, lease, name, version, meta, publisher.uri_for(version))
             return version
-        # PostgreSQL: the name's advisory lock is held by a transaction of its own that writes
-        # nothing; the move happens outside the transaction that locks the job row and commits.
-        with self._tx() as name_lock:
-            self._lock_name(name_lock, name)
-            with self._read() as conn:
-                self._check_lease(conn, lease)
-                version = self._next_version(conn, name)
+        # PostgreSQL: one transaction, one connection (a publish never waits for a second one
+        # from a bounded pool while it holds the first). It takes the name's advisory lock and
+        # reads the next number, writing nothing; the files move; only then does it lock the
+        # job row, finish the lease and record the version, and commit.
+        with self._tx() as conn:
+            self._lock_name(conn, name)
+            self._check_lease(conn, lease)
+            version = self._next_version(conn, name)
             publisher.publish(version)
-            with self._tx() as conn:
-                self._lock_job(conn, lease.job_id)
-                self._finish(conn, lease)
-                if self._next_version(conn, name) != version:
-                    raise StoreError(f"dataset {name!r} version {version} was taken during its publish")
-                self._record_version(conn, lease, name, version, meta, publisher.uri_for(version))
+            self._lock_job(conn, lease.job_id)
+            self._finish(conn, lease)
+            self._record_version(conn, lease, name, version, meta, publisher.uri_for(version))
         return version
 
     def _check_lease(self, conn: Connection, lease: Lease) -> None:
