@@ -77,7 +77,26 @@ def test_member_squares_are_the_per_photon_squares_of_the_reweighted_entries():
         gm, sm = g * fac, s * fac
         value = np.stack([gm, sm, gm, gm, gm, sm, gm, gm])
         np.testing.assert_allclose(acc.squares["hybrid"], photon_moments(key, value, size), rtol=1e-12, atol=1e-300)
-        np.testing.assert_allclose(acc.linear["hybrid"][0], np.bincount(flat2.ravel(), gm.ravel(), acc.linear["hybrid"].shape[1]))
+        n_lin = acc.linear["hybrid"].shape[1]
+        for row, w in ((0, gm), (2, sm), (4, (gm != 0.0).astype(np.float64))):
+            np.testing.assert_allclose(acc.linear["hybrid"][row], np.bincount(flat2.ravel(), w.ravel(), n_lin), rtol=1e-12, atol=1e-300)
+
+
+def test_member_walk_totals_are_the_balance_and_truncation_of_the_reweighted_photons():
+    rng = np.random.default_rng(5)
+    p, n_cfg = 700, 3
+    w0 = np.array([0.97, 0.9, 1.0])
+    members = MemberTallies([0.0, 0.5, 0.8], 0.8, w0, ["hybrid"], n_cfg, (6, 1, 1, 1))
+    cfg = rng.integers(0, n_cfg, size=p)
+    status = rng.integers(0, 3, size=p)  # 0 exited, 1 truncated, 2 absorbed (weight gone)
+    w = rng.uniform(0.0, 1.0, size=p)
+    nscat = rng.integers(0, 30, size=p)
+    members.add_walk(cfg, status == 0, status == 1, w, nscat)
+    for acc, f in zip(members.accs, member_factors(members.ratios, nscat)):
+        left = np.where(status <= 1, w, 0.0) * f
+        for q, v in (("absorbed", w0[cfg] - left), ("truncated", np.where(status == 1, w, 0.0) * f)):
+            for row, x in enumerate((v, v * v, (v != 0.0).astype(np.float64))):
+                np.testing.assert_array_equal(acc.walk[q][row], np.bincount(cfg, weights=x, minlength=n_cfg))
 
 
 def test_factors_are_the_albedo_ratio_to_the_scattering_count():

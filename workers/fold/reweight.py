@@ -137,31 +137,46 @@ class MemberTallies:
         f = member_factors(self.ratios, nscat)  # [J, P]
         f8 = np.tile(f, (1, 8))  # [J, 8 P]: the factor of each (key set, photon)
         flat_single, flat_ex = flat2[:, :-1].reshape(-1), flat2[:, -1]
-        gs, ss_ = g[:, :-1].reshape(-1)[None, :] * r, s[:, :-1].reshape(-1)[None, :] * r
+        g_single, s_single = g[:, :-1].reshape(-1), s[:, :-1].reshape(-1)
         ge, se = g[None, :, -1] * f, s[None, :, -1] * f
         size = self.accs[0].linear["hybrid"].shape[1]
-        events = lambda x: (x != 0.0).astype(np.float64)  # noqa: E731
-        for row, ws, we in ((0, gs, ge), (2, ss_, se), (4, events(gs), events(ge))):
-            self._add("hybrid", row, size, [(flat_single, ws), (flat_ex, we)])
+        # Every member scales the first-vertex entries by the same r_j: their sums per bin (and
+        # their squares per key) are the leader's, times r_j (r_j^2), formed once per block;
+        # only the exit's factor r_j^n differs per photon.  A member's events are the leader's
+        # entries != 0 where r_j > 0.
+        live = (self.ratios > 0.0).astype(np.float64)[:, None]
+        single = [np.bincount(flat_single, weights=w, minlength=size) for w in (g_single, s_single, (g_single != 0.0).astype(np.float64))]
+        exits = [self._bincounts([(flat_ex, w)], size) for w in (ge, se, (ge != 0.0).astype(np.float64))]
+        for row, lead, scale, ex_j in ((0, single[0], r, exits[0]), (2, single[1], r, exits[1]), (4, single[2], live, exits[2])):
+            for acc, sc, t in zip(self.accs, scale[:, 0], ex_j):
+                acc.linear["hybrid"][row] += sc * lead + t
         n_sq = int(self.accs[0].layout.square_offsets[-1])
         key_s, key_e = key[..., :-1].reshape(-1), key[..., -1].reshape(-1)
-        parts = [(key_s, q_ss[None, :] * (r * r)), (key_e, q_se[None, :] * (2.0 * r * f8) + q_ee[None, :] * (f8 * f8))]
-        for acc, sq in zip(self.accs, self._bincounts(parts, n_sq)):
+        sq_single = np.bincount(key_s, weights=q_ss, minlength=n_sq)
+        sq_exit = self._bincounts([(key_e, q_se[None, :] * (2.0 * r * f8) + q_ee[None, :] * (f8 * f8))], n_sq)
+        for acc, r2, t in zip(self.accs, r[:, 0] * r[:, 0], sq_exit):
+            sq = r2 * sq_single + t
             if "hybrid" in acc.squares:
                 acc.squares["hybrid"] += sq
             else:
-                acc.squares["hybrid"] = sq.copy()
+                acc.squares["hybrid"] = sq
 
     def add_walk(self, cfg: np.ndarray, status_exit: np.ndarray, status_trunc: np.ndarray, w: np.ndarray, nscat: np.ndarray) -> None:
         """Walk totals of finished photons: truncated weight w r^n of truncated photons, and the
         absorbed power as the balance w_0 - r^n w (exited or truncated) (module docstring)."""
-        f = member_factors(self.ratios, nscat)
+        f = member_factors(self.ratios, nscat)  # [J, P]
         w = np.asarray(w, dtype=np.float64)
         left = np.where(status_exit | status_trunc, w, 0.0)
         trunc = np.where(status_trunc, w, 0.0)
-        w0 = self.w0[cfg]
-        for acc, fj in zip(self.accs, f):
-            acc.add_walk(cfg, w0 - left * fj, trunc * fj)
+        absorbed = self.w0[cfg][None, :] - left[None, :] * f
+        truncated = trunc[None, :] * f
+        n_cfg = self.accs[0].n_cfg
+        idx = (np.arange(len(self.accs))[:, None] * n_cfg + cfg[None, :]).ravel()
+        for q, v in (("absorbed", absorbed), ("truncated", truncated)):  # one bincount over all members per row
+            for row, x in enumerate((v, v * v, (v != 0.0).astype(np.float64))):
+                sums = np.bincount(idx, weights=x.ravel(), minlength=len(self.accs) * n_cfg).reshape(len(self.accs), n_cfg)
+                for acc, t in zip(self.accs, sums):
+                    acc.walk[q][row] += t
 
     def finish(self, n_photons: int) -> list[tuple[dict, dict]]:
         """(stats, counts) of every member, as :meth:`PhotonAccumulator.finish`."""
