@@ -52,7 +52,10 @@ def test_specular_reflectance_is_the_torch_fresnel_with_a_correctly_rounded_sqrt
                 assert _bits(got) == _bits(want), (theta, eta, got, want)
                 same += 1
             assert np.float32(1.0 - got) == np.float32(1.0 - want), (theta, eta, got, want)
-    assert same >= 0.99 * len(ETAS) * len(THETAS)  # the exceptions are rare (module docstring)
+    # The bitwise check must have run on nearly every pair.  How often torch's float64 sqrt misrounds
+    # depends on the CPU's vector code: 94 of 57,728 pairs on an Intel Xeon (AVX-512), 817 on an
+    # AMD EPYC (Zen 4); the float32 check above holds at every pair on both.
+    assert same >= 0.95 * len(ETAS) * len(THETAS)
 
 
 def test_specular_reflectance_of_the_examples_is_bitwise_the_torch_value():
