@@ -171,11 +171,9 @@ class MemberTallies:
         absorbed = self.w0[cfg][None, :] - left[None, :] * f
         truncated = trunc[None, :] * f
         n_cfg = self.accs[0].n_cfg
-        idx = (np.arange(len(self.accs))[:, None] * n_cfg + cfg[None, :]).ravel()
         for q, v in (("absorbed", absorbed), ("truncated", truncated)):  # one bincount over all members per row
             for row, x in enumerate((v, v * v, (v != 0.0).astype(np.float64))):
-                sums = np.bincount(idx, weights=x.ravel(), minlength=len(self.accs) * n_cfg).reshape(len(self.accs), n_cfg)
-                for acc, t in zip(self.accs, sums):
+                for acc, t in zip(self.accs, self._bincounts([(cfg, x)], n_cfg)):
                     acc.walk[q][row] += t
 
     def finish(self, n_photons: int) -> list[tuple[dict, dict]]:
