@@ -50,6 +50,7 @@ from .medium import ChannelOptics, MediumSpec
 from .names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
 from .sweep import SweepSpec
 from .roulette import PathRoulette
+from .stretch import Stretch
 from .target import TargetSpec
 
 __all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE", "MAX_TASKS"]
@@ -128,6 +129,10 @@ class SimulationSpec(BaseModel):
         None, description="Russian roulette on path length (off by default): a photon still in flight "
         "after start steps survives with probability survival, weight divided by it, and again at every "
         "doubling of its step count; unbiased; see schema/roulette.py.",
+    )
+    stretch: Stretch | None = Field(
+        None, description="Radial path stretching (off by default): an exponential transform of the free "
+        "paths outward at low albedo, weights carrying the likelihood ratio; unbiased; see schema/stretch.py.",
     )
     target: TargetSpec | None = Field(
         None, description="Run shards in order until these relative standard errors are reached "
@@ -361,9 +366,9 @@ class SimulationSpec(BaseModel):
         """The fully-defaulted, normalised model as JSON with sorted keys and no whitespace.
 
         Of "medium" and "sweep" only the one given appears, so a single-medium spec hashes as
-        it did before sweeps existed; likewise "target" and "path_roulette" only when given."""
+        it did before sweeps existed; likewise "target", "path_roulette" and "stretch" only when given."""
         data = self.model_dump(mode="json")
-        for form in ("medium", "sweep", "target", "path_roulette"):
+        for form in ("medium", "sweep", "target", "path_roulette", "stretch"):
             if data[form] is None:
                 del data[form]
         return json.dumps(data, sort_keys=True,

@@ -22,7 +22,8 @@ the cost of the table that meets a relative error of ``node_rel`` (1 %) in every
 - the same, separately, for the *major* nodes only: those that carry >= 1e-3 of the medium's
   total Rd (pbrt's rhoEff) each.
 
-``--path-roulette START,SURVIVAL`` sets the spec's ``path_roulette`` (:mod:`schema.roulette`).
+``--path-roulette START,SURVIVAL`` sets the spec's ``path_roulette`` (:mod:`schema.roulette`),
+``--stretch GAMMA,R_MIN,ALBEDO_MAX`` its ``stretch`` (:mod:`schema.stretch`).
 
 A node's relative error is itself estimated from its events; where they are few and
 heavy-tailed (the far nodes, ~9 mean free paths, of albedos below ~0.5: 30-100 events at 2e5
@@ -62,9 +63,9 @@ TOTAL = 2
 
 
 def table_spec(albedos, g: float, eta: float, photons: int, estimator: str, walks: str, group_edges=None,
-               seed: int = 1, shards: int = 1, path_roulette: dict | None = None) -> SimulationSpec:
+               seed: int = 1, shards: int = 1, path_roulette: dict | None = None, stretch: dict | None = None) -> SimulationSpec:
     """The sweep measured: pbrt's 64 radial bins, no direction resolution (Rd(r) is what the
-    table holds), normal incidence; path_roulette as the spec's field (None: off)."""
+    table holds), normal incidence; path_roulette and stretch as the spec's fields (None: off)."""
     sweep = {"albedo": list(albedos), "g": [g], "eta": [eta], "walks": walks}
     if group_edges is not None:
         sweep["group_edges"] = list(group_edges)
@@ -72,7 +73,7 @@ def table_spec(albedos, g: float, eta: float, photons: int, estimator: str, walk
         "name": "table-cost", "sweep": sweep, "incidence_deg": [0.0], "photons": photons, "shards": shards,
         "batches_per_shard": 2, "estimator": estimator, "seed": seed,
         "bins": {"radial": {"count": 64, "spacing": "pbrt"}, "cos_theta_o": {"count": 1}, "phi_o": {"count": 1}},
-        "path_roulette": path_roulette,
+        "path_roulette": path_roulette, "stretch": stretch,
     })  # fmt: skip
 
 
@@ -91,8 +92,9 @@ def measure(spec: SimulationSpec, progress=None) -> tuple[list, list[float]]:
     # Warm-up outside the measurement: compile or load the kernels for this shard size (a cheap
     # low albedo with the same photons per shard, hence the same lane count).
     roulette = None if spec.path_roulette is None else spec.path_roulette.model_dump()
+    stretch = None if spec.stretch is None else spec.stretch.model_dump()
     warm = table_spec([0.05], spec.sweep.g[0], spec.sweep.eta[0], spec.photons, spec.estimator, "independent",
-                      shards=spec.shards, path_roulette=roulette)  # fmt: skip
+                      shards=spec.shards, path_roulette=roulette, stretch=stretch)  # fmt: skip
     list(run_tasks([(warm.medium_spec(0), 0)], threads=1))
     fold = JobFold(spec)
     results, cpu = [], [0.0] * len(spec.walk_groups())
@@ -161,7 +163,8 @@ def project(spec: SimulationSpec, results, cpu: list[float], r_min=0.001, r_max=
     return {
         "g": spec.sweep.g[0], "eta": spec.sweep.eta[0], "estimator": est, "walks": spec.walk_mode(),
         "photons_per_medium": spec.photons, "media": spec.n_media,
-        "path_roulette": None if spec.path_roulette is None else spec.path_roulette.model_dump(), "groups": groups, "albedos": needs,
+        "path_roulette": None if spec.path_roulette is None else spec.path_roulette.model_dump(),
+        "stretch": None if spec.stretch is None else spec.stretch.model_dump(), "groups": groups, "albedos": needs,
         "cpu_s_measured": sum(cpu), "cpu_hours": total,
         "bound": any(g[w]["node"]["bound"] for g in groups for w in ("all",)),
         "target": {"node_rel": node_rel, "rd_rel": rd_rel, "r_min": r_min, "r_max": r_max, "major_share": 1e-3},
@@ -183,6 +186,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--path-roulette", default=None, metavar="START,SURVIVAL",
                    help="the spec's path_roulette (schema/roulette.py), e.g. 1024,0.5 (default: off)")
+    p.add_argument("--stretch", default=None, metavar="GAMMA,R_MIN,ALBEDO_MAX",
+                   help="the spec's stretch (schema/stretch.py), e.g. 0.8,0,0.3 (default: off)")
     p.add_argument("--yardstick", type=float, default=None, help="reference walk steps per CPU-second measured now")
     p.add_argument("--yardstick-ref", type=float, default=YARDSTICK_REF)
     p.add_argument("--json", action="store_true")
@@ -196,7 +201,12 @@ def main(argv=None) -> int:
     if a.path_roulette is not None:
         start, survival = a.path_roulette.split(",")
         roulette = {"start": int(start), "survival": float(survival)}
-    spec = table_spec(albedos, a.g, a.eta, a.photons, a.estimator, a.walks, edges, seed=a.seed, path_roulette=roulette)
+    stretch = None
+    if a.stretch is not None:
+        gamma, r_min, albedo_max = (float(x) for x in a.stretch.split(","))
+        stretch = {"gamma": gamma, "r_min_mfp": r_min, "albedo_max": albedo_max}
+    spec = table_spec(albedos, a.g, a.eta, a.photons, a.estimator, a.walks, edges, seed=a.seed, path_roulette=roulette,
+                      stretch=stretch)  # fmt: skip
     t0 = time.perf_counter()
     results, cpu = measure(spec)
     out = project(spec, results, cpu)

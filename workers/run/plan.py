@@ -124,6 +124,7 @@ class ShardPlan:
         params = WalkParams(
             inv_eta=1.0 / cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
             hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed", phase=phase_of(spec),
+            stretch=None if spec.stretch is None else (spec.stretch.gamma, spec.stretch.r_min_mfp, spec.stretch.albedo_max),
         )  # fmt: skip
         sigma_t = torch.tensor(cfgs.sigma_t, dtype=torch.float64)
         radial_mm = torch.from_numpy(layout.radial_mm[[cfgs.channel_of(c) for c in range(cfgs.n)]])  # [cfg, n_r + 1]

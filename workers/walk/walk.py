@@ -24,6 +24,7 @@ from .kernels import compile_kernel
 from .optics import fresnel_dielectric, sample_exponential, scatter_direction
 from .phase import DEFAULT_PHASE, phase_function
 from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
+from .stretch import stretch_factors
 
 __all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "ConfigTable", "STEP_FIELDS", "walk_step", "step_function", "refill_lanes", "compile_enabled"]
 
@@ -53,6 +54,7 @@ class WalkParams:
     survival: float = 0.1
     hg_branch: str = "mixed"  # "large" / "small": every |g| >= 0.1 / < 0.1 (see sample_hg)
     phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
+    stretch: tuple[float, float, float] | None = None  # radial path stretching (gamma, r_min, albedo_max): workers.walk.stretch
 
 
 @dataclass
@@ -145,6 +147,10 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
     running = status == RUNNING
     b0, b1, b2, b3 = philox4x32(lanes.c_lo, lanes.c_hi, step, torch.zeros_like(step) + PURPOSE_WALK, lanes.k0, lanes.k1)
     s = sample_exponential(uniform_open(b0))
+    if p.stretch is not None:  # workers.walk.stretch: the free path drawn from sigma* exp(-sigma* s)
+        gamma, r_min, albedo_max = p.stretch
+        sig, gamma_mu = stretch_factors(x, y, ux, uy, lanes.nscat, albedo, running, gamma=gamma, r_min=r_min, albedo_max=albedo_max)
+        s = s / sig
     u_dec = uniform_halfopen(b1)
     z_new = z + s * uz
     hit = running & (z_new >= 0.0)
@@ -152,6 +158,8 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
 
     # Boundary: uz > 0 on hit lanes; elsewhere the distance is unused, the clamp avoids 0/0.
     t = -z / torch.clamp(uz, min=1e-30)
+    if p.stretch is not None:  # the likelihood ratio of the flight, before absorption and Fresnel
+        w = w * torch.where(hit, torch.exp(-gamma_mu * t), torch.where(coll, torch.exp(-gamma_mu * s) / sig, 1.0))
     reflect = hit & (u_dec < fresnel_dielectric(uz, p.inv_eta))
     escape = hit & ~reflect
 
@@ -163,7 +171,11 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
     else:
         absorbed_new = lanes.absorbed + torch.where(coll, w * (1.0 - albedo), 0.0)
         w_att = torch.where(coll, w * albedo, w)
-        low = coll & (w_att < p.w_min)
+        if p.stretch is not None:  # roulette's threshold falls with distance as stretched weights do (workers.walk.stretch)
+            xc, yc = x + s * ux, y + s * uy
+            low = coll & (w_att < p.w_min * torch.exp(-gamma * torch.sqrt(xc * xc + yc * yc)))
+        else:
+            low = coll & (w_att < p.w_min)
         survive = u_dec < p.survival
         killed = low & ~survive
         w_new = torch.where(low, torch.where(survive, w_att * (1.0 / p.survival), 0.0), w_att)

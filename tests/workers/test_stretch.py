@@ -1,0 +1,202 @@
+"""Radial path stretching (schema/stretch.py, workers/walk/stretch.py).
+
+- one step: a stretched free path follows sigma* exp(-sigma* s) with sigma* = 1 - gamma mu
+  (chi-square against that density for outward, sideways and inward flights, and on the axis),
+  the weight after it is exactly the likelihood ratio exp(-gamma mu s) / sigma* and its mean is 1;
+  a flight that reaches the surface carries exp(-gamma mu t), so the weight leaving has the
+  expectation exp(-t) of the unstretched law; first flights, flights inside r_min and albedos at
+  or above albedo_max are left alone;
+- whole walks with stretching agree with plain independent walks in every radial bin with >= 30
+  events, Rd and absorbed power (two seeds, z with unit spread), exit tally and hybrid, shared
+  walks included; Rd at eta = 1, g = 0 matches Chandrasekhar's H-function; the far bins get many
+  more events (the point of it);
+- the same spec gives the same bytes on one thread and on two processes; bad fields are refused
+  with their name and range; off by default and absent from the canonical spec.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from schema import SpecError
+from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
+from tests.support.stats import assert_samples_match_pdf
+from tests.support.tables import bitwise_equal
+from tests.workers.test_shared_walks import TOTAL, rows_z, sweep_results, sweep_spec
+from workers.run.simulate import simulate_sweep
+from workers.walk.walk import EXITED, RUNNING, Lanes, WalkParams, walk_step
+
+GAMMA = 0.8
+STRETCH = {"gamma": GAMMA, "r_min_mfp": 0.0, "albedo_max": 0.7}
+LOW = [0.05, 0.15, 0.3, 0.6]  # the albedos stretching is for
+
+
+def lanes_from(n: int, x: float, u: tuple[float, float, float], z: float, *, nscat: int = 1, albedo: float = 0.5, seed: int = 3) -> Lanes:
+    lanes = Lanes.empty(n)
+    lanes.x[:], lanes.z[:] = x, z
+    lanes.ux[:], lanes.uy[:], lanes.uz[:] = u
+    lanes.w[:], lanes.albedo[:], lanes.nscat[:] = 1.0, albedo, nscat
+    lanes.status[:] = RUNNING
+    lanes.photon[:] = torch.arange(n)
+    lanes.c_lo[:] = torch.arange(n, dtype=torch.int32)
+    lanes.k0[:], lanes.k1[:] = seed, 99
+    return lanes
+
+
+def step(lanes: Lanes, stretch=(GAMMA, 1.0, 0.7)) -> Lanes:
+    """One step at eta = 1, without Russian roulette (w_min 0): the weight after a collision is
+    w albedo times the flight's factor."""
+    return walk_step(lanes, p=WalkParams(inv_eta=1.0, analog=False, max_scatter=1 << 20, w_min=0.0, stretch=stretch))[0]
+
+
+def flight_lengths(before: Lanes, after: Lanes) -> np.ndarray:
+    dx, dy, dz = (getattr(after, a).double() - getattr(before, a).double() for a in ("x", "y", "z"))
+    return torch.sqrt(dx * dx + dy * dy + dz * dz).numpy()
+
+
+# mu (outward horizontal cosine) and where: outward, sideways, inward at rho = 2; on the axis
+CASES = [(2.0, (1.0, 0.0, 0.0), 1.0), (2.0, (0.6, 0.0, -0.8), 0.6), (2.0, (0.0, 0.6, -0.8), 0.0), (2.0, (-1.0, 0.0, 0.0), -1.0),
+         (0.0, (0.6, 0.0, -0.8), 0.6)]
+
+
+@pytest.mark.parametrize("x, u, mu", CASES)
+def test_stretched_free_path_follows_its_density_and_carries_the_likelihood_ratio(x, u, mu):
+    n = 1 << 17
+    before = lanes_from(n, x, u, z=-300.0)  # deep: every flight ends in a collision (and float32 resolves it)
+    after = step(before, stretch=(GAMMA, 0.0 if x == 0.0 else 1.0, 0.7))  # r_min 0 on the axis
+    s = flight_lengths(before, after)
+    sig = 1.0 - GAMMA * mu
+    edges = np.concatenate([np.linspace(0.0, 6.0 / sig, 41), [np.inf]])
+    assert_samples_match_pdf(s, lambda v: sig * math.exp(-sig * v), edges, n_tests=len(CASES), what=f"stretched free path, mu {mu}")
+    w = after.w.double().numpy() / np.float32(0.5)  # the albedo's factor out
+    np.testing.assert_allclose(w, np.exp(-GAMMA * mu * s) / sig, rtol=2e-5)
+    se = w.std() / math.sqrt(n)
+    assert abs(w.mean() - 1.0) <= 4.0 * se, (w.mean(), se)  # E_drawn[p / q] = 1
+
+
+@pytest.mark.parametrize("mu", [0.9, 0.0, -0.9])
+def test_a_stretched_flight_leaves_with_the_unstretched_expectation(mu):
+    """From depth h along u (uz > 0): E[weight leaving] = exp(-t), t = h / uz, as without stretching;
+    the share leaving is exp(-sigma* t) (eta = 1: no reflection)."""
+    n, h = 1 << 17, 0.4
+    uz = math.sqrt(1.0 - mu * mu)
+    before = lanes_from(n, 2.0, (mu, 0.0, uz), z=-h)
+    after = step(before)
+    out = after.status.numpy() == EXITED
+    t, sig = h / uz, 1.0 - GAMMA * mu
+    share, sd = out.mean(), math.sqrt(math.exp(-sig * t) * (1 - math.exp(-sig * t)) / n)
+    assert abs(share - math.exp(-sig * t)) <= 4.0 * sd, (share, math.exp(-sig * t))
+    left = np.where(out, after.w.double().numpy(), 0.0)
+    np.testing.assert_allclose(after.w.double().numpy()[out], math.exp(-GAMMA * mu * t), rtol=1e-5)
+    assert abs(left.mean() - math.exp(-t)) <= 4.0 * left.std() / math.sqrt(n), (left.mean(), math.exp(-t))
+
+
+@pytest.mark.parametrize("x, nscat, albedo", [(2.0, 0, 0.5), (0.5, 3, 0.5), (2.0, 3, 0.7), (2.0, 3, 0.9)])
+def test_first_flights_near_flights_and_high_albedos_are_not_stretched(x, nscat, albedo):
+    n = 1 << 12
+    before = lanes_from(n, x, (1.0, 0.0, 0.0), z=-1e6, nscat=nscat, albedo=albedo)
+    plain = walk_step(before, p=WalkParams(inv_eta=1.0, analog=False, max_scatter=1 << 20, w_min=0.0))[0]
+    stretched = step(before)
+    for name in ("x", "y", "z", "w", "status", "absorbed"):
+        assert torch.equal(getattr(plain, name), getattr(stretched, name)), name
+
+
+# -- whole walks --------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module", params=["exits", "hybrid"])
+def pair(request):
+    est = request.param
+    return (est, sweep_results(sweep_spec(est, "shared", 1, 2**15, albedos=LOW, stretch=STRETCH)),
+            sweep_results(sweep_spec(est, "independent", 2, 2**15, albedos=LOW)))
+
+
+@pytest.mark.slow
+def test_stretched_shared_walks_agree_with_plain_independent_walks_in_every_bin(pair, walk_stats):
+    est, st, plain = pair
+    z, n_bins = rows_z(st, plain, est)
+    dof = min(r.dof(f"{est}/Rd") for r in st + plain)
+    what = f"{est}: stretched {STRETCH} shared (seed 1) against plain independent (seed 2), {len(LOW)} albedos, {n_bins} bins"
+    assert n_bins >= 60, what
+    walk_stats.assert_unit_spread(z, dof, what)
+    walk_stats.assert_within(z, dof, what)
+
+
+@pytest.mark.slow
+def test_stretching_sends_photons_to_the_far_bins(pair):
+    """The agreement above is not vacuous: beyond 4 mean free paths the stretched walk has at least
+    twice the events of the plain one at every albedo (measured 2.6-2.7x at 0.6, where walks are
+    longest, 11-50x at 0.05)."""
+    est, st, plain = pair
+    r = st[0].layout.radial_mm[0]
+    far = r[:-1] >= 4.0
+    for a, b, albedo in zip(st, plain, LOW):
+        ea, eb = a.events(f"{est}/radial_G")[0, TOTAL][:-1][far].sum(), b.events(f"{est}/radial_G")[0, TOTAL][:-1][far].sum()
+        print(f"albedo {albedo}: {ea} events beyond 4 mfp stretched, {eb} plain")
+        assert ea >= 2 * max(eb, 1), (albedo, ea, eb)
+
+
+@pytest.mark.slow
+def test_stretched_rd_matches_the_h_function(walk_stats):
+    albedos = [0.1, 0.3, 0.6]
+    spec = sweep_spec("exits", "shared", 5, 2**15, eta=1.0, albedos=albedos, stretch=STRETCH, bins={"radial": {"count": 1, "max_mm": 100.0}})
+    results = sweep_results(spec)
+    z = []
+    for r, a in zip(results, albedos):
+        rd, se = r.mean("exits/Rd")[0, TOTAL], r.stderr("exits/Rd")[0, TOTAL]
+        exact = diffuse_reflectance_isotropic_matched(a)
+        print(f"a = {a}: Rd {rd:.6f} +- {se:.2e} vs {exact:.6f}")
+        assert abs(rd - exact) <= 3.0 * se + 0.002 * exact, f"a = {a}: {rd:.6f} +- {se:.2e} against {exact:.6f}"
+        z.append((rd - exact) / se)
+    walk_stats.assert_within(z, min(r.dof("exits/Rd") for r in results), "stretched Rd against the H-function")
+
+
+def test_same_bytes_on_one_thread_and_two_processes(tmp_path):
+    spec = sweep_spec("hybrid", "shared", 9, 3000, albedos=LOW, stretch=STRETCH)
+    simulate_sweep(spec, str(tmp_path / "a"), threads=1)
+    simulate_sweep(spec, str(tmp_path / "b"), processes=2)
+    for name in ("radial", "bins", "summary"):
+        a, b = pq.read_table(tmp_path / "a" / f"{name}.parquet"), pq.read_table(tmp_path / "b" / f"{name}.parquet")
+        assert bitwise_equal(a, b), name
+
+
+# -- the spec -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("value, words", [
+    ({"gamma": 0.0}, ["stretch.gamma", "(0, 0.95]", "0"]),
+    ({"gamma": 1.0}, ["stretch.gamma", "(0, 0.95]", "1.0"]),
+    ({"r_min_mfp": -1}, ["stretch.r_min_mfp", "[0, 10000]", "-1"]),
+    ({"albedo_max": 0}, ["stretch.albedo_max", "(0, 1]", "0"]),
+    ({"albedo_max": 1.5}, ["stretch.albedo_max", "(0, 1]", "1.5"]),
+    ({"gama": 0.5}, ["stretch.gama"]),
+])
+def test_bad_stretch_fields_are_refused_with_the_field_and_range(value, words):
+    with pytest.raises(SpecError) as err:
+        sweep_spec("hybrid", "shared", 1, 100, stretch=value)
+    for w in words:
+        assert w in str(err.value), str(err.value)
+
+
+def test_off_by_default_and_absent_from_the_canonical_spec():
+    plain = sweep_spec("hybrid", "shared", 1, 100)
+    assert plain.stretch is None and "stretch" not in plain.canonical_json()
+    spec = sweep_spec("hybrid", "shared", 1, 100, stretch=STRETCH)
+    assert spec.medium_spec(0).stretch == spec.stretch
+    assert spec.spec_hash() != plain.spec_hash()
+
+
+def test_table_cost_passes_the_stretch_to_its_sweep(capsys):
+    import json
+
+    from workers.measure.table_cost import main
+
+    assert main(["--albedos", "0.2,0.5", "--photons", "3000", "--stretch", "0.8,0,0.3", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["stretch"] == {"gamma": 0.8, "r_min_mfp": 0.0, "albedo_max": 0.3}
+    assert all(math.isfinite(out["cpu_hours"][k]) and out["cpu_hours"][k] > 0 for k in ("all", "major"))
