@@ -32,10 +32,18 @@ from typing import TYPE_CHECKING, Sequence
 if TYPE_CHECKING:
     from .spec import SimulationSpec
 
-__all__ = ["DEFAULT_GROUP_EDGES", "SHARED_ESTIMATORS", "albedo_groups", "walk_mode", "walk_groups"]
+__all__ = ["DEFAULT_GROUP_EDGES", "STRETCH_GROUP_EDGES", "SHARED_ESTIMATORS", "default_group_edges", "albedo_groups", "walk_mode", "walk_groups"]
 
 DEFAULT_GROUP_EDGES: tuple[float, ...] = (0.3, 0.7)
 """Albedos where a new walk group starts when a sweep does not give ``group_edges``."""
+
+STRETCH_GROUP_EDGES: tuple[float, ...] = (0.3, 0.4, 0.5, 0.6, 0.7)
+"""The default edges of a sweep with ``stretch`` (schema.stretch): stretched walks reach the far
+nodes, and what is left to decide their cost is the reweighting from the leader, whose factor
+(a / a_w)^n thins the many-scattering paths that reach far out; leaders 0.1 apart below 0.7 keep
+it mild.  Measured for pbrt's table at g 0, eta 1.33 (BENCHMARKS.md, "Far tails"): the ten albedos
+in [0.33, 0.68] need 4.2e8 photons with these edges and no stretching, 4.0e8 with stretching and
+one group, 4.7e7 with both."""
 
 SHARED_ESTIMATORS = ("exits", "hybrid")
 """Estimators whose tallies a shared walk reweights (per photon: its exit and first vertex)."""
@@ -46,6 +54,12 @@ def albedo_groups(albedos: Sequence[float], edges: Sequence[float]) -> list[tupl
     (each edge starts a group at the first albedo >= edge); empty ranges dropped."""
     cuts = sorted({sum(1 for a in albedos if a < e) for e in edges} | {0, len(albedos)})
     return [(lo, hi) for lo, hi in zip(cuts[:-1], cuts[1:]) if hi > lo]
+
+
+def default_group_edges(spec: "SimulationSpec") -> tuple[float, ...]:
+    """The group edges of a sweep that does not give ``group_edges``: STRETCH_GROUP_EDGES with
+    ``stretch``, else DEFAULT_GROUP_EDGES."""
+    return STRETCH_GROUP_EDGES if spec.stretch is not None else DEFAULT_GROUP_EDGES
 
 
 def walk_mode(spec: "SimulationSpec") -> str:
@@ -68,6 +82,6 @@ def walk_groups(spec: "SimulationSpec") -> list[tuple[int, ...]]:
     if walk_mode(spec) == "independent":
         return [(m,) for m in range(n)]
     albedos = spec.sweep.albedos()
-    edges = spec.sweep.group_edges if spec.sweep.group_edges is not None else DEFAULT_GROUP_EDGES
+    edges = spec.sweep.group_edges if spec.sweep.group_edges is not None else default_group_edges(spec)
     ranges = albedo_groups(albedos, edges)
     return [tuple(range(block + lo, block + hi)) for block in range(0, n, len(albedos)) for lo, hi in ranges]

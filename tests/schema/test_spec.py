@@ -311,3 +311,21 @@ def test_schema_package_imports_no_torch_or_fastapi():
     code = ("import sys, schema; bad = {'torch', 'fastapi'} & set(sys.modules); "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True)
+
+
+def test_the_production_table_spec_asks_for_the_renderers_table():
+    """docs/pbrt-table.json (README, "Far tails at low albedo"): pbrt's 99 non-zero albedos x 64
+    nodes at g 0, eta 1.33, 0.2 % on Rd and 1 % in every radial bin from 0.001 mfp up to and
+    including the bin of the node at 9.14 mfp, with roulette and stretching."""
+    from schema.bins import pbrt_radius_nodes
+    from schema.sweep import pbrt_albedos
+
+    spec = load_spec(ROOT / "docs" / "pbrt-table.json")
+    assert spec.sweep.albedos() == [a for a in pbrt_albedos(100) if a > 0]
+    assert (spec.sweep.g, spec.sweep.eta, spec.bins.radial.count) == ([0.0], [1.33], 64)
+    assert spec.target.rel_stderr == 0.002 and spec.target.radial.rel_stderr == 0.01
+    edges = spec.medium_spec(0).radial_edges_mm()[0]  # mm = mean free paths (sigma_t = 1/mm)
+    nodes = pbrt_radius_nodes(64)
+    checked = [j for j in range(64) if edges[j] >= spec.target.radial.r_min_mm and edges[j + 1] <= spec.target.radial.r_max_mm]
+    assert [nodes[j] for j in checked] == [r for r in nodes if 0.001 <= r <= 10.0]
+    assert spec.stretch is not None and spec.path_roulette is not None

@@ -200,3 +200,23 @@ def test_table_cost_passes_the_stretch_to_its_sweep(capsys):
     out = json.loads(capsys.readouterr().out)
     assert out["stretch"] == {"gamma": 0.8, "r_min_mfp": 0.0, "albedo_max": 0.3}
     assert all(math.isfinite(out["cpu_hours"][k]) and out["cpu_hours"][k] > 0 for k in ("all", "major"))
+
+
+def test_stretched_sweeps_group_albedos_below_0_7_in_tenths_and_walks_above_run_unstretched():
+    from schema import parse_spec
+    from schema.sweep import pbrt_albedos
+    from workers.run.plan import ShardPlan
+
+    albedos = [a for a in pbrt_albedos(100) if a > 0]
+    d = {"name": "t", "sweep": {"albedo": albedos, "g": [0.0], "eta": [1.33]}, "stretch": STRETCH, "photons": 100}
+    spec = parse_spec(d)
+    leaders = [albedos[g[-1]] for g in spec.walk_groups()]
+    firsts = [albedos[g[0]] for g in spec.walk_groups()]
+    assert [round(a, 3) for a in firsts] == [0.078, 0.332, 0.432, 0.517, 0.621, 0.703]
+    assert leaders[-1] == 1.0
+    assert len(parse_spec({k: v for k, v in d.items() if k != "stretch"}).walk_groups()) == 3  # (0.3, 0.7) without it
+    # the plans: stretching compiled into the walks below albedo_max only
+    for group in spec.walk_groups():
+        leader = group[-1]
+        plan = ShardPlan.build(spec.medium_spec(leader), 0)
+        assert (plan.params.stretch is not None) == (albedos[leader] < STRETCH["albedo_max"]), albedos[leader]

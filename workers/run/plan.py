@@ -124,7 +124,7 @@ class ShardPlan:
         params = WalkParams(
             inv_eta=1.0 / cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
             hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed", phase=phase_of(spec),
-            stretch=None if spec.stretch is None else (spec.stretch.gamma, spec.stretch.r_min_mfp, spec.stretch.albedo_max),
+            stretch=_stretch(spec, cfgs),
         )  # fmt: skip
         sigma_t = torch.tensor(cfgs.sigma_t, dtype=torch.float64)
         radial_mm = torch.from_numpy(layout.radial_mm[[cfgs.channel_of(c) for c in range(cfgs.n)]])  # [cfg, n_r + 1]
@@ -156,3 +156,14 @@ class ShardPlan:
             params=params, n_steps=1 if connect else EXIT_STEPS_PER_CALL, geo=geo, exit_bins=exit_bins, first_vertex=first_vertex,
             entry_layout=entry_layout,
         )  # fmt: skip
+
+
+def _stretch(spec: SimulationSpec, cfgs: Configs) -> tuple[float, float, float] | None:
+    """The walk's radial path stretching (gamma, r_min, albedo_max) (workers.walk.stretch), None
+    without the spec's ``stretch`` or when no configuration's albedo is below its albedo_max: then
+    the compiled step has no stretching code at all (the walks at albedo >= albedo_max of a sweep
+    run as fast as without it)."""
+    st = spec.stretch
+    if st is None or not any(float(a) < st.albedo_max for a in cfgs.albedo):
+        return None
+    return (st.gamma, st.r_min_mfp, st.albedo_max)
