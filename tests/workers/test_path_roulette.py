@@ -25,10 +25,9 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from schema import SpecError
 from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
 from tests.support.tables import bitwise_equal
-from tests.workers.test_shared_walks import ALBEDOS, TOTAL, rows_z, sweep_results, sweep_spec
+from tests.workers.test_shared_walks import TOTAL, assert_optional_field, assert_refused, assert_rows_agree, sweep_results, sweep_spec
 from workers.walk.path_roulette import check_steps_per_call, roulette_round
 from workers.run.simulate import simulate_sweep
 from workers.walk.walk import ABSORBED, EXITED, RUNNING, Lanes
@@ -99,18 +98,11 @@ def test_start_must_be_a_multiple_of_the_steps_per_call():
     ({"start": 64, "surviv": 0.5}, ["path_roulette.surviv"]),
 ])
 def test_bad_roulette_fields_are_refused_with_the_field_and_range(value, words):
-    with pytest.raises(SpecError) as err:
-        sweep_spec("hybrid", "shared", 1, 100, path_roulette=value)
-    for w in words:
-        assert w in str(err.value), str(err.value)
+    assert_refused("path_roulette", value, words)
 
 
 def test_off_by_default_and_absent_from_the_canonical_spec():
-    plain = sweep_spec("hybrid", "shared", 1, 100)
-    assert plain.path_roulette is None and "path_roulette" not in plain.canonical_json()
-    spec = sweep_spec("hybrid", "shared", 1, 100, path_roulette=ROULETTE)
-    assert spec.medium_spec(0).path_roulette == spec.path_roulette
-    assert spec.spec_hash() != plain.spec_hash()
+    assert_optional_field("path_roulette", ROULETTE)
 
 
 # -- statistics ----------------------------------------------------------------------------------
@@ -126,12 +118,7 @@ def pair(request):
 @pytest.mark.slow
 def test_roulette_shared_walks_agree_with_plain_independent_walks_in_every_bin(pair, walk_stats):
     est, rr, plain = pair
-    z, n_bins = rows_z(rr, plain, est)
-    dof = min(r.dof(f"{est}/Rd") for r in rr + plain)
-    what = f"{est}: roulette {ROULETTE} shared (seed 1) against plain independent (seed 2), {len(ALBEDOS)} albedos, {n_bins} bins"
-    assert n_bins >= 60, what
-    walk_stats.assert_unit_spread(z, dof, what)
-    walk_stats.assert_within(z, dof, what)
+    assert_rows_agree(rr, plain, est, f"{est}: roulette {ROULETTE} shared (seed 1) against plain independent (seed 2)", walk_stats)
 
 
 @pytest.mark.slow

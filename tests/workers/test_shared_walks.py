@@ -173,14 +173,21 @@ def rows_z(first, second, est: str) -> tuple[np.ndarray, int]:
     return np.concatenate(z), n_bins
 
 
-def test_reweighted_albedos_agree_with_their_own_walks_in_every_bin(pair, walk_stats):
-    est, shared, indep = pair
-    z, n_bins = rows_z(shared, indep, est)
-    dof = min(r.dof(f"{est}/Rd") for r in shared + indep)
-    what = f"{est}: shared (seed 1) against independent (seed 2) walks, {len(ALBEDOS)} albedos, {n_bins} radial bins"
+def assert_rows_agree(first, second, est: str, what: str, walk_stats) -> None:
+    """Every albedo row of `first` agrees with `second` (:func:`rows_z`: Rd, absorbed power and
+    the radial bins with >= MIN_EVENTS events, at least 60 of them): z with unit spread, none
+    beyond the family's cut."""
+    z, n_bins = rows_z(first, second, est)
+    dof = min(r.dof(f"{est}/Rd") for r in first + second)
+    what = f"{what}, {len(first)} albedos, {n_bins} radial bins"
     assert n_bins >= 60, what
     walk_stats.assert_unit_spread(z, dof, what)
     walk_stats.assert_within(z, dof, what)
+
+
+def test_reweighted_albedos_agree_with_their_own_walks_in_every_bin(pair, walk_stats):
+    est, shared, indep = pair
+    assert_rows_agree(shared, indep, est, f"{est}: shared (seed 1) against independent (seed 2) walks", walk_stats)
 
 
 def test_reweighted_error_bars_are_honest_against_the_direct_walks(pair):
@@ -192,19 +199,42 @@ def test_reweighted_error_bars_are_honest_against_the_direct_walks(pair):
         assert ra <= 1.1 * rb, f"albedo {a.configs.albedo[0]}: reweighted se {ra:.3e} against direct {rb:.3e}"
 
 
-def test_reweighted_rd_matches_the_h_function(walk_stats):
-    spec = sweep_spec("exits", "shared", 5, 2**17, eta=1.0, bins={"radial": {"count": 1, "max_mm": 100.0}})
-    results = sweep_results(spec)
-    assert len(spec.walk_groups()) == 1
+def assert_rd_matches_the_h_function(results, albedos, what: str, walk_stats) -> None:
+    """Total Rd of the exit tally of each result (eta = 1, g = 0) against Chandrasekhar's H-function."""
     z = []
-    for r, a in zip(results, ALBEDOS):
+    for r, a in zip(results, albedos):
         rd, se = r.mean("exits/Rd")[0, TOTAL], r.stderr("exits/Rd")[0, TOTAL]
         exact = diffuse_reflectance_isotropic_matched(a)
         print(f"a = {a}: Rd {rd:.6f} +- {se:.2e} vs {exact:.6f}")
         # The bar of the direct walk's H-function test: 3 se plus 0.2 % (float32 walk).
-        assert abs(rd - exact) <= 3.0 * se + 0.002 * exact, f"a = {a}: {rd:.6f} +- {se:.2e} against {exact:.6f}"
+        assert abs(rd - exact) <= 3.0 * se + 0.002 * exact, f"{what}, a = {a}: {rd:.6f} +- {se:.2e} against {exact:.6f}"
         z.append((rd - exact) / se)
-    walk_stats.assert_within(z, min(r.dof("exits/Rd") for r in results), "reweighted Rd against the H-function")
+    walk_stats.assert_within(z, min(r.dof("exits/Rd") for r in results), f"{what} against the H-function")
+
+
+def assert_optional_field(field: str, value) -> None:
+    """A spec field that is off by default stays out of the canonical spec (old hashes hold), is
+    passed to every medium's own spec and changes the hash when given."""
+    plain = sweep_spec("hybrid", "shared", 1, 100)
+    assert getattr(plain, field) is None and f'"{field}"' not in plain.canonical_json()
+    spec = sweep_spec("hybrid", "shared", 1, 100, **{field: value})
+    assert getattr(spec.medium_spec(0), field) == getattr(spec, field)
+    assert spec.spec_hash() != plain.spec_hash()
+
+
+def assert_refused(field: str, value, words) -> None:
+    """A bad value of a spec field is refused with a message holding every one of ``words``."""
+    with pytest.raises(SpecError) as err:
+        sweep_spec("hybrid", "shared", 1, 100, **{field: value})
+    for w in words:
+        assert w in str(err.value), str(err.value)
+
+
+def test_reweighted_rd_matches_the_h_function(walk_stats):
+    spec = sweep_spec("exits", "shared", 5, 2**17, eta=1.0, bins={"radial": {"count": 1, "max_mm": 100.0}})
+    results = sweep_results(spec)
+    assert len(spec.walk_groups()) == 1
+    assert_rd_matches_the_h_function(results, ALBEDOS, "reweighted Rd", walk_stats)
 
 
 # -- determinism ---------------------------------------------------------------------------------

@@ -23,11 +23,9 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from schema import SpecError
-from tests.reference.hfunction import diffuse_reflectance_isotropic_matched
 from tests.support.stats import assert_samples_match_pdf
 from tests.support.tables import bitwise_equal
-from tests.workers.test_shared_walks import TOTAL, rows_z, sweep_results, sweep_spec
+from tests.workers.test_shared_walks import TOTAL, assert_optional_field, assert_rd_matches_the_h_function, assert_refused, assert_rows_agree, sweep_results, sweep_spec
 from workers.run.simulate import simulate_sweep
 from workers.walk.walk import EXITED, RUNNING, Lanes, WalkParams, walk_step
 
@@ -119,12 +117,7 @@ def pair(request):
 @pytest.mark.slow
 def test_stretched_shared_walks_agree_with_plain_independent_walks_in_every_bin(pair, walk_stats):
     est, st, plain = pair
-    z, n_bins = rows_z(st, plain, est)
-    dof = min(r.dof(f"{est}/Rd") for r in st + plain)
-    what = f"{est}: stretched {STRETCH} shared (seed 1) against plain independent (seed 2), {len(LOW)} albedos, {n_bins} bins"
-    assert n_bins >= 60, what
-    walk_stats.assert_unit_spread(z, dof, what)
-    walk_stats.assert_within(z, dof, what)
+    assert_rows_agree(st, plain, est, f"{est}: stretched {STRETCH} shared (seed 1) against plain independent (seed 2)", walk_stats)
 
 
 @pytest.mark.slow
@@ -145,15 +138,7 @@ def test_stretching_sends_photons_to_the_far_bins(pair):
 def test_stretched_rd_matches_the_h_function(walk_stats):
     albedos = [0.1, 0.3, 0.6]
     spec = sweep_spec("exits", "shared", 5, 2**15, eta=1.0, albedos=albedos, stretch=STRETCH, bins={"radial": {"count": 1, "max_mm": 100.0}})
-    results = sweep_results(spec)
-    z = []
-    for r, a in zip(results, albedos):
-        rd, se = r.mean("exits/Rd")[0, TOTAL], r.stderr("exits/Rd")[0, TOTAL]
-        exact = diffuse_reflectance_isotropic_matched(a)
-        print(f"a = {a}: Rd {rd:.6f} +- {se:.2e} vs {exact:.6f}")
-        assert abs(rd - exact) <= 3.0 * se + 0.002 * exact, f"a = {a}: {rd:.6f} +- {se:.2e} against {exact:.6f}"
-        z.append((rd - exact) / se)
-    walk_stats.assert_within(z, min(r.dof("exits/Rd") for r in results), "stretched Rd against the H-function")
+    assert_rd_matches_the_h_function(sweep_results(spec), albedos, "stretched Rd", walk_stats)
 
 
 def test_same_bytes_on_one_thread_and_two_processes(tmp_path):
@@ -177,18 +162,11 @@ def test_same_bytes_on_one_thread_and_two_processes(tmp_path):
     ({"gama": 0.5}, ["stretch.gama"]),
 ])
 def test_bad_stretch_fields_are_refused_with_the_field_and_range(value, words):
-    with pytest.raises(SpecError) as err:
-        sweep_spec("hybrid", "shared", 1, 100, stretch=value)
-    for w in words:
-        assert w in str(err.value), str(err.value)
+    assert_refused("stretch", value, words)
 
 
 def test_off_by_default_and_absent_from_the_canonical_spec():
-    plain = sweep_spec("hybrid", "shared", 1, 100)
-    assert plain.stretch is None and "stretch" not in plain.canonical_json()
-    spec = sweep_spec("hybrid", "shared", 1, 100, stretch=STRETCH)
-    assert spec.medium_spec(0).stretch == spec.stretch
-    assert spec.spec_hash() != plain.spec_hash()
+    assert_optional_field("stretch", STRETCH)
 
 
 def test_table_cost_passes_the_stretch_to_its_sweep(capsys):
