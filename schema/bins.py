@@ -41,6 +41,8 @@ __all__ = [
     "CosThetaOBins",
     "PhiOBins",
     "BinSpec",
+    "channel_radial_edges_mm",
+    "theta_s_count",
     "radial_edges",
     "uniform_edges",
     "azimuth_edges",
@@ -248,3 +250,19 @@ def pbrt_radial_edges(count: int) -> np.ndarray:
     nodes = pbrt_radius_nodes(count)
     half = math.sqrt(PBRT_RATIO)
     return np.concatenate([[0.0, nodes[1] / half], nodes[1:] * half])
+
+
+def channel_radial_edges_mm(bins: BinSpec, channels) -> np.ndarray:
+    """Radial edges [mm] of each channel (anything with ``sigma_t`` and ``transport_mfp_mm``),
+    float64 [n_channels, n_r + 1]; column 0 is 0."""
+    r = bins.radial
+    if r.spacing == "pbrt":  # pbrt's nodes are optical radii r sigma_t: per channel in mm
+        return np.stack([pbrt_radial_edges(r.count) / c.sigma_t for c in channels])
+    return np.stack([radial_edges(r, r.max_radius_mm(c.transport_mfp_mm)) for c in channels])
+
+
+def theta_s_count(bins: BinSpec, incidence_deg) -> int:
+    """theta_s bin count, "auto" resolved: 1 if every incidence angle is 0, else THETA_S_AUTO_OBLIQUE."""
+    if bins.theta_s.count is not None:
+        return bins.theta_s.count
+    return 1 if all(t == 0.0 for t in incidence_deg) else THETA_S_AUTO_OBLIQUE

@@ -31,7 +31,7 @@ from .sweep import sweep_point, sweep_points
 if TYPE_CHECKING:
     from .spec import SimulationSpec
 
-__all__ = ["Medium", "media", "medium_spec", "task_count", "task_of", "task_index"]
+__all__ = ["Medium", "media", "medium_spec", "split_range", "task_count", "task_of", "task_index"]
 
 
 @dataclass(frozen=True)
@@ -99,3 +99,9 @@ def task_index(spec: "SimulationSpec", group: int, shard: int) -> int:
     if not (isinstance(shard, int) and 0 <= shard < spec.shards):
         raise ShardIndexError(f"shard_index must be in the allowed range [0, {spec.shards}); received {shard!r}")
     return group * spec.shards + shard
+
+
+def split_range(start: int, stop: int, pieces: int, i: int) -> tuple[int, int]:
+    """Piece i of [start, stop) cut at start + floor(k n / pieces), exact integer arithmetic."""
+    n = stop - start
+    return start + i * n // pieces, start + (i + 1) * n // pieces

@@ -34,11 +34,10 @@ from pydantic_core import PydanticCustomError
 
 from .bins import (
     MAX_TOTAL_BINS,
-    THETA_S_AUTO_OBLIQUE,
     BinSpec,
     azimuth_edges,
-    pbrt_radial_edges,
-    radial_edges,
+    channel_radial_edges_mm,
+    theta_s_count,
     uniform_edges,
 )
 from .groups import SHARED_ESTIMATORS
@@ -51,7 +50,7 @@ from .names import NAME_MAX, NAME_PATTERN, NAME_RULE, InvalidName, check_name
 from .sweep import SweepSpec
 from .roulette import PathRoulette
 from .stretch import Stretch
-from .target import TargetSpec
+from .target import TargetSpec, check_radial_target
 
 __all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE", "MAX_TASKS"]
 
@@ -195,7 +194,7 @@ class SimulationSpec(BaseModel):
             return bins  # already reported as their own errors
         medium = info.data["medium"]
         n_channels = medium.n_channels if medium is not None else 1  # per medium of a sweep
-        n_theta = _theta_s_count(bins, incidence)
+        n_theta = theta_s_count(bins, incidence)
         factors = [bins.radial.count, n_theta, bins.cos_theta_o.count, bins.phi_o.count,
                    n_channels, len(incidence)]
         total = math.prod(factors)
@@ -215,7 +214,7 @@ class SimulationSpec(BaseModel):
         medium, bins = info.data.get("medium"), info.data.get("bins")
         if target is None or target.radial is None or medium is None or bins is None:
             return target
-        _check_radial_target(target, bins, medium.channels())
+        check_radial_target(target, channel_radial_edges_mm(bins, medium.channels()), medium.channels())
         return target
 
     @field_validator("target")
@@ -228,7 +227,7 @@ class SimulationSpec(BaseModel):
             return target
         pairs = sorted({(a, g) for a in sweep.albedos() for g in sweep.g})
         channels = [ChannelOptics(name=f"albedo {a:g}, g {g:g}", sigma_a=1.0 - a, sigma_s=a, g=g) for a, g in pairs]
-        _check_radial_target(target, bins, channels)
+        check_radial_target(target, channel_radial_edges_mm(bins, channels), channels)
         return target
 
     @field_validator("shards")
@@ -323,11 +322,11 @@ class SimulationSpec(BaseModel):
 
     def theta_s_count(self) -> int:
         """theta_s bin count, "auto" resolved: 1 if every incidence angle is 0, else 12."""
-        return _theta_s_count(self.bins, self.incidence_deg)
+        return theta_s_count(self.bins, self.incidence_deg)
 
     def radial_edges_mm(self) -> np.ndarray:
         """Radial edges [mm], float64 array [n_channels, n_r + 1]; column 0 is 0."""
-        return _radial_edges_mm(self.bins, self.channels())
+        return channel_radial_edges_mm(self.bins, self.channels())
 
     def theta_s_edges(self) -> np.ndarray:
         """Exit-azimuth edges [rad], :meth:`theta_s_count` bins centred on +x
@@ -352,13 +351,13 @@ class SimulationSpec(BaseModel):
             raise ShardIndexError(
                 f"shard_index must be in the allowed range [0, {self.shards}); "
                 f"received {shard_index!r}")
-        return _split(0, self.photons, self.shards, shard_index)
+        return _media.split_range(0, self.photons, self.shards, shard_index)
 
     def batch_photon_ranges(self, shard_index: int) -> list[tuple[int, int]]:
         """The shard's range split the same way into ``batches_per_shard`` non-empty pieces."""
         start, stop = self.shard_photon_range(shard_index)
         b = self.batches_per_shard
-        return [_split(start, stop, b, j) for j in range(b)]
+        return [_media.split_range(start, stop, b, j) for j in range(b)]
 
     # ---- identity -------------------------------------------------------------------------
 
@@ -377,39 +376,6 @@ class SimulationSpec(BaseModel):
     def spec_hash(self) -> str:
         """sha256 hex digest of :meth:`canonical_json` (UTF-8)."""
         return hashlib.sha256(self.canonical_json().encode("utf-8")).hexdigest()
-
-
-def _check_radial_target(target: TargetSpec, bins: BinSpec, channels: list[ChannelOptics]) -> None:
-    """PydanticCustomError unless target.radial's range holds a whole radial bin of each channel."""
-    t = target.radial
-    for ch, edges in zip(channels, _radial_edges_mm(bins, channels)):
-        if not np.any((edges[:-1] >= t.r_min_mm) & (edges[1:] <= t.r_max_mm)):
-            raise PydanticCustomError(
-                "radial_target_empty",
-                "radial target range [{lo}, {hi}] mm holds no whole radial bin of channel "
-                "{ch} (edges {edges} mm); widen it",
-                {"lo": t.r_min_mm, "hi": t.r_max_mm, "ch": ch.name,
-                 "edges": np.array2string(edges, precision=4, threshold=8)[:120]})
-
-
-def _radial_edges_mm(bins: BinSpec, channels: list[ChannelOptics]) -> np.ndarray:
-    """Radial edges [mm] of each channel, float64 [n_channels, n_r + 1] (see radial_edges_mm)."""
-    r = bins.radial
-    if r.spacing == "pbrt":  # pbrt's nodes are optical radii r sigma_t: per channel in mm
-        return np.stack([pbrt_radial_edges(r.count) / c.sigma_t for c in channels])
-    return np.stack([radial_edges(r, r.max_radius_mm(c.transport_mfp_mm)) for c in channels])
-
-
-def _theta_s_count(bins: BinSpec, incidence_deg: list[float]) -> int:
-    if bins.theta_s.count is not None:
-        return bins.theta_s.count
-    return 1 if all(t == 0.0 for t in incidence_deg) else THETA_S_AUTO_OBLIQUE
-
-
-def _split(start: int, stop: int, pieces: int, i: int) -> tuple[int, int]:
-    """Piece i of [start, stop) cut at start + floor(k n / pieces), exact integer arithmetic."""
-    n = stop - start
-    return start + i * n // pieces, start + (i + 1) * n // pieces
 
 
 def parse_spec(data: Any, source: str = "") -> SimulationSpec:

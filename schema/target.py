@@ -25,12 +25,13 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from pydantic_core import PydanticCustomError
 
 from .constraints import Interval
 
-__all__ = ["TargetSpec", "RadialTarget"]
+__all__ = ["TargetSpec", "RadialTarget", "check_radial_target"]
 
 _REL = Interval(0, 1, lo_open=True, hi_open=True, what="rel_stderr")
 
@@ -74,3 +75,17 @@ class TargetSpec(BaseModel):
         None, description="Optional: also a relative standard error for Rd(r) per radial bin "
         "within a radius range."
     )
+
+
+def check_radial_target(target: TargetSpec, edges_mm: np.ndarray, channels) -> None:
+    """PydanticCustomError unless target.radial's range holds a whole radial bin of each channel
+    (edges_mm: [n_channels, n_r + 1] radial edges of the ``channels``, which have a ``name``)."""
+    t = target.radial
+    for ch, edges in zip(channels, edges_mm):
+        if not np.any((edges[:-1] >= t.r_min_mm) & (edges[1:] <= t.r_max_mm)):
+            raise PydanticCustomError(
+                "radial_target_empty",
+                "radial target range [{lo}, {hi}] mm holds no whole radial bin of channel "
+                "{ch} (edges {edges} mm); widen it",
+                {"lo": t.r_min_mm, "hi": t.r_max_mm, "ch": ch.name,
+                 "edges": np.array2string(edges, precision=4, threshold=8)[:120]})
