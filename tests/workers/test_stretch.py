@@ -121,6 +121,26 @@ def test_stretched_shared_walks_agree_with_plain_independent_walks_in_every_bin(
 
 
 @pytest.mark.slow
+def test_stretched_bssrdf_s_agrees_with_plain_walks_in_every_bin(pair, walk_stats):
+    """S (the BSSRDF averaged over a bin, w / cos_o per exit) as well as G: every bin with >= 30
+    events in both runs (chosen by events, not by errors), z with unit spread."""
+    est, st, plain = pair
+    z = []
+    for a, b in zip(st, plain):
+        ea, eb = a.events(f"{est}/bins_S")[0, TOTAL], b.events(f"{est}/bins_S")[0, TOTAL]
+        keep = (ea >= 30) & (eb >= 30)
+        ma, mb = a.mean(f"{est}/bins_S")[0, TOTAL][keep], b.mean(f"{est}/bins_S")[0, TOTAL][keep]
+        sa, sb = a.stderr(f"{est}/bins_S")[0, TOTAL][keep], b.stderr(f"{est}/bins_S")[0, TOTAL][keep]
+        z.append((ma - mb) / np.sqrt(sa * sa + sb * sb))
+    z = np.concatenate(z)
+    what = f"{est}: S of stretched shared against plain independent walks, {len(z)} bins"
+    assert len(z) >= 60, what
+    dof = min(r.dof(f"{est}/Rd") for r in st + plain)
+    walk_stats.assert_unit_spread(z, dof, what)
+    walk_stats.assert_within(z, dof, what)
+
+
+@pytest.mark.slow
 def test_stretching_sends_photons_to_the_far_bins(pair):
     """The agreement above is not vacuous: beyond 4 mean free paths the stretched walk has at least
     twice the events of the plain one at every albedo (measured 2.6-2.7x at 0.6, where walks are

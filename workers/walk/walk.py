@@ -136,6 +136,9 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
       deposited and w *= albedo, then Russian roulette below w_min.  Analog mode: the photon is
       absorbed with probability 1 - albedo.  A surviving photon scatters into a new direction
       sampled from Henyey-Greenstein; after max_scatter scatterings it is truncated.
+    - With ``p.stretch`` (workers.walk.stretch) s is drawn from sigma* exp(-sigma* s) instead and
+      the weight takes the flight's likelihood ratio before the rest; roulette's threshold then
+      falls with the distance from the axis.
     Returns the lanes after the step (new tensors for STEP_FIELDS, the others shared) and
     (collided, ux_in, uy_in, uz_in, w_in): the vertices of this step with the direction and
     weight arriving there, for the connection estimator.  The new direction is computed on every
