@@ -43,6 +43,7 @@ def lanes_from(n: int, x: float, u: tuple[float, float, float], z: float, *, nsc
     lanes.photon[:] = torch.arange(n)
     lanes.c_lo[:] = torch.arange(n, dtype=torch.int32)
     lanes.k0[:], lanes.k1[:] = seed, 99
+    lanes.start_streams()
     return lanes
 
 

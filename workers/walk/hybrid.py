@@ -28,7 +28,7 @@ Both parts are unbiased for their component; total = single + multiple.  No weig
 the run's results.  S of a connection sample uses T cos_in / cos_o
 (:func:`workers.walk.optics.transmittance_cos_ratio`), bounded also where cos_o -> 0.
 
-Random numbers: the first vertex is recomputed from the photon's walk stream (draw 0: free path
+Random numbers: the first vertex is recomputed from the photon's walk stream (the four draws of its first step: free path
 and scattering direction, so the phase sample *is* the walk's direction) and the uniform samples
 use the connection purpose of draw 0, block PURPOSE_CONNECT + j for stratum j.  The samples are
 computed when a photon finishes, from its photon index and configuration alone, together with its
@@ -43,13 +43,13 @@ from functools import lru_cache
 import torch
 
 from .binning import TWO_PI, azimuth_index, histogram_index, outgoing_azimuth, uniform_index
-from .conventions import PURPOSE_CONNECT, PURPOSE_WALK
+from .conventions import PURPOSE_CONNECT
 from .harvest import ExitBins, count_le, exit_bins
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, refracted_cos, sample_exponential, scatter_direction, transmittance_cos_ratio
 from .phase import DEFAULT_PHASE, phase_function
-from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
-from .walk import EXITED, Lanes
+from .rng import philox4x32, photon_words, stream_draws, uniform_halfopen, uniform_open
+from .walk import EXITED, Lanes, walk_stream_start
 
 __all__ = ["K_SAMPLES", "FirstVertexGeometry", "EntryLayout", "strata", "first_vertex_samples", "photon_entries", "entries_function"]
 
@@ -119,7 +119,7 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
     c_lo, c_hi = photon_words(photon)
     k0, k1 = geo.k0[cfg], geo.k1[cfg]
     zero = torch.zeros_like(c_lo)
-    b0, _, b2, b3 = philox4x32(c_lo, c_hi, zero, zero + PURPOSE_WALK, k0, k1)
+    (b0, _, b2, b3), _ = stream_draws(walk_stream_start(c_lo, c_hi, k0, k1))  # the walk's first step's draws
     s1 = sample_exponential(uniform_open(b0))  # the walk's first free path
     ux, uz = geo.u0x[cfg], geo.u0z[cfg]
     uy = torch.zeros_like(ux)

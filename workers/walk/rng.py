@@ -1,4 +1,5 @@
-"""Counter-based random numbers: Philox-4x32-10 written in torch integer ops.
+"""Random numbers: counter-based Philox-4x32-10, and the per-photon xoshiro128+ streams it seeds,
+written in torch integer ops.
 
 Every random number of a run is a pure function of a *key* and a *counter*:
 
@@ -19,6 +20,20 @@ torch has no unsigned 32-bit arithmetic on the CPU, so words are carried as int3
 32-bit vector multiplies but no 64-bit one (ATen emulates int64 multiplication there one element at
 a time, which made an int64 generator the slowest part of the compiled walk).  :func:`to_i32` and
 :func:`to_u32` convert from and to int64 tensors holding the unsigned values.
+
+**The walk's draws.**  Ten Philox rounds per step were about a third of a compiled walk step (about 400
+vector operations per block on AVX2, where each 32 x 32 -> 64-bit product is built from 16-bit partial
+products).  The walk therefore keys only the *start* of a photon's stream by its counter: at launch
+the block Philox(photon, 0, PURPOSE_WALK) becomes the 128-bit state of a xoshiro128+ generator
+(Blackman and Vigna, "Scrambled linear pseudorandom number generators", 2021) carried in the
+photon's lane, and every step takes the next four 32-bit outputs of that state (11 vector
+operations per output: an add, xors and shifts).  A photon's draws remain a function of (seed,
+configuration, photon) alone -- not of its lane, the lane count or the threads -- because the state
+moves with the photon and is advanced once per step of that photon.  xoshiro128+ has period
+2^128 - 1 and passes BigCrush except in its lowest bits, which have low linear complexity; the
+uniform mappings below use the top 23 or 24 bits only.  One bit of the Philox block is forced (the
+second word is made odd), which keeps the state away from the all-zero fixed point.  Other draws
+(roulette rounds, connection samples) stay plain counter-based Philox.
 """
 
 from __future__ import annotations
@@ -36,6 +51,10 @@ __all__ = [
     "philox4x32_scalar",
     "native_wide_multiply",
     "photon_words",
+    "stream_start",
+    "stream_next",
+    "stream_draws",
+    "xoshiro128p_scalar",
     "to_i32",
     "to_u32",
     "stream_key",
@@ -184,6 +203,59 @@ def photon_words(photon: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Counter words 0 and 1 of an int64 photon index: its low and high 32 bits as int32 bit
     patterns (exact casts, see :func:`to_i32`)."""
     return to_i32(photon & _MASK32), to_i32(photon >> 32)
+
+
+def stream_start(c_lo, c_hi, purpose: int, k0, k1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The xoshiro128+ state that starts a photon's stream: the Philox block of counter
+    (c_lo, c_hi, 0, purpose) under key (k0, k1), with the second word made odd (never all zero).
+    int32 bit patterns in and out (broadcastable)."""
+    zero = torch.zeros_like(c_lo)
+    b0, b1, b2, b3 = philox4x32(c_lo, c_hi, zero, zero + purpose, k0, k1)
+    return b0, b1 | 1, b2, b3
+
+
+def stream_next(s0, s1, s2, s3):
+    """One xoshiro128+ output and the next state, on int32 bit patterns (wrapping arithmetic):
+
+        out = s0 + s3;  t = s1 << 9
+        s2 ^= s0;  s3 ^= s1;  s1 ^= s2;  s0 ^= s3;  s2 ^= t;  s3 = rotl(s3, 11)
+    """
+    out = s0 + s3
+    t = s1 << 9
+    s2 = s2 ^ s0
+    s3 = s3 ^ s1
+    s1 = s1 ^ s2
+    s0 = s0 ^ s3
+    s2 = s2 ^ t
+    s3 = (s3 << 11) | ((s3 >> 21) & 0x7FF)  # rotl(s3, 11); >> on int32 is arithmetic, hence the mask
+    return out, (s0, s1, s2, s3)
+
+
+def stream_draws(state, n: int = 4):
+    """The next n outputs of xoshiro128+ states (a tuple of four int32 tensors) and the state after
+    them: ((out_1, ..., out_n), state)."""
+    outs = []
+    for _ in range(n):
+        out, state = stream_next(*state)
+        outs.append(out)
+    return tuple(outs), state
+
+
+def xoshiro128p_scalar(state: tuple[int, int, int, int], n: int) -> tuple[list[int], tuple[int, int, int, int]]:
+    """Plain-Python xoshiro128+ on unsigned ints (the reference for the tensor version): n outputs
+    and the state after them."""
+    s0, s1, s2, s3 = state
+    outs = []
+    for _ in range(n):
+        outs.append((s0 + s3) & _MASK32)
+        t = (s1 << 9) & _MASK32
+        s2 ^= s0
+        s3 ^= s1
+        s1 ^= s2
+        s0 ^= s3
+        s2 ^= t
+        s3 = ((s3 << 11) | (s3 >> 21)) & _MASK32
+    return outs, (s0, s1, s2, s3)
 
 
 def philox4x32_scalar(counter: tuple[int, int, int, int], key: tuple[int, int]) -> tuple[int, int, int, int]:

@@ -7,8 +7,10 @@ finished lanes keep their final state until the shard runner harvests them and r
 with the next photon (:func:`refill_lanes`, run by :func:`workers.walk.harvest.finish_and_refill`).  All lengths are optical (sigma_t = 1, see
 :mod:`workers.walk.conventions`), so one walk serves every channel and incidence angle at once.
 
-Random numbers come from Philox keyed by (seed, configuration) with counter (photon, step): a
-photon's path does not depend on its lane, the lane count or the thread count.
+Random numbers: each photon carries its own xoshiro128+ state (lanes r0..r3), started at launch
+from Philox keyed by (seed, configuration) with counter (photon, 0) and advanced four outputs per
+step (:mod:`workers.walk.rng`): a photon's path does not depend on its lane, the lane count or the
+thread count.
 """
 
 from __future__ import annotations
@@ -23,10 +25,10 @@ from .conventions import PURPOSE_WALK
 from .kernels import compile_kernel
 from .optics import fresnel_dielectric, sample_exponential, scatter_direction
 from .phase import DEFAULT_PHASE, phase_function
-from .rng import philox4x32, photon_words, uniform_halfopen, uniform_open
+from .rng import photon_words, stream_draws, stream_start, uniform_halfopen, uniform_open
 from .stretch import stretch_factors
 
-__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "ConfigTable", "STEP_FIELDS", "walk_step", "step_function", "refill_lanes", "compile_enabled"]
+__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "ConfigTable", "STEP_FIELDS", "walk_step", "step_function", "refill_lanes", "compile_enabled", "walk_stream_start"]
 
 # Lane status codes (int32: an int8 status made inductor convert masks element by element).
 RUNNING = 0  # photon in flight
@@ -80,6 +82,10 @@ class Lanes:
     k1: torch.Tensor
     c_lo: torch.Tensor  # int32 Philox counter words 0 and 1: the photon index, low and high half
     c_hi: torch.Tensor
+    r0: torch.Tensor  # int32 xoshiro128+ state of the photon's walk stream (workers.walk.rng)
+    r1: torch.Tensor
+    r2: torch.Tensor
+    r3: torch.Tensor
 
     @classmethod
     def empty(cls, n: int) -> "Lanes":
@@ -90,8 +96,14 @@ class Lanes:
             x=f32(), y=f32(), z=f32(), ux=f32(), uy=f32(), uz=f32(), w=f32(), absorbed=f32(),
             nscat=i32(), step=i32(), photon=i64(), cfg=i64(),
             status=torch.full((n,), EMPTY, dtype=torch.int32),
-            albedo=f32(), g=f32(), k0=i32(), k1=i32(), c_lo=i32(), c_hi=i32(),
+            albedo=f32(), g=f32(), k0=i32(), k1=i32(), c_lo=i32(), c_hi=i32(), r0=i32(), r1=i32(), r2=i32(), r3=i32(),
         )  # fmt: skip
+
+    def start_streams(self) -> None:
+        """Start every lane's walk stream from its photon and key words (c_lo, c_hi, k0, k1), in
+        place: what a launch does (:func:`refill_lanes`), for callers that set lanes up by hand."""
+        for dst, val in zip((self.r0, self.r1, self.r2, self.r3), walk_stream_start(self.c_lo, self.c_hi, self.k0, self.k1)):
+            dst.copy_(val)
 
     def tensors(self) -> list[torch.Tensor]:
         """Every field, in declaration order (for moves that treat all lanes' fields alike)."""
@@ -121,14 +133,21 @@ class ConfigTable:
 
 
 # The fields of a lane that a step changes; the others are fixed while its photon is in flight.
-STEP_FIELDS = ("x", "y", "z", "ux", "uy", "uz", "w", "absorbed", "nscat", "step", "status")
+STEP_FIELDS = ("x", "y", "z", "ux", "uy", "uz", "w", "absorbed", "nscat", "step", "status", "r0", "r1", "r2", "r3")
+
+
+def walk_stream_start(c_lo: torch.Tensor, c_hi: torch.Tensor, k0: torch.Tensor, k1: torch.Tensor):
+    """The xoshiro128+ state a photon's walk starts from (int32 words): the Philox block of
+    counter (photon, 0, PURPOSE_WALK) (:func:`workers.walk.rng.stream_start`).  Its first four
+    outputs are the draws of the photon's first step (the hybrid's first vertex replays them)."""
+    return stream_start(c_lo, c_hi, PURPOSE_WALK, k0, k1)
 
 
 def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor, ...]]:
     """Advance every RUNNING lane by one interaction; returns the new state and vertex data.
 
-    One Philox block per step gives u_path (free path), u_dec (Fresnel / roulette / absorption
-    decision), u_cos and u_phi (scattering direction).  With s = -ln(u_path):
+    Four outputs of the photon's stream per step give u_path (free path), u_dec (Fresnel /
+    roulette / absorption decision), u_cos and u_phi (scattering direction).  With s = -ln(u_path):
     - z + s uz >= 0: the path reaches the surface at t = -z/uz.  With probability
       Fr(uz, 1/eta) the photon reflects specularly (uz -> -uz) and continues from the surface
       (the free path is memoryless, so a fresh one is drawn next step); otherwise it exits.
@@ -148,7 +167,8 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
     x, y, z, ux, uy, uz, w = lanes.x, lanes.y, lanes.z, lanes.ux, lanes.uy, lanes.uz, lanes.w
     status, step, albedo = lanes.status, lanes.step, lanes.albedo
     running = status == RUNNING
-    b0, b1, b2, b3 = philox4x32(lanes.c_lo, lanes.c_hi, step, torch.zeros_like(step) + PURPOSE_WALK, lanes.k0, lanes.k1)
+    # Every lane's stream advances (a lane not running is started afresh when it is refilled).
+    (b0, b1, b2, b3), (r0, r1, r2, r3) = stream_draws((lanes.r0, lanes.r1, lanes.r2, lanes.r3))
     s = sample_exponential(uniform_open(b0))
     if p.stretch is not None:  # workers.walk.stretch: the free path drawn from sigma* exp(-sigma* s)
         gamma, r_min, albedo_max = p.stretch
@@ -204,7 +224,7 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
     step_new = step + running.to(torch.int32)
     after = replace(
         lanes, x=x_new, y=y_new, z=z_new, ux=ux_new, uy=uy_new, uz=uz_new, w=w_new, absorbed=absorbed_new, nscat=nscat_new,
-        step=step_new, status=status_new,
+        step=step_new, status=status_new, r0=r0, r1=r1, r2=r2, r3=r3,
     )  # fmt: skip
     return after, (coll, ux, uy, uz, w)
 
@@ -237,7 +257,8 @@ def refill_lanes(lanes: Lanes, table: ConfigTable, launch: torch.Tensor) -> None
     the k-th free lane (k = 0, 1, ...) gets launch number q = next + k, i.e. photon
     start + q // n_cfg of configuration q % n_cfg, while q < launches; the remaining free lanes
     become EMPTY.  A new photon sits at the origin travelling along the refracted incident
-    direction of its configuration with weight 1 - R_spec.
+    direction of its configuration with weight 1 - R_spec, its walk stream started
+    (:func:`walk_stream_start`).
     """
     L, T = lanes, table
     start, nxt, n_launch, n_cfg = launch[0], launch[1], launch[2], launch[3]
@@ -260,6 +281,8 @@ def refill_lanes(lanes: Lanes, table: ConfigTable, launch: torch.Tensor) -> None
     L.cfg.copy_(torch.where(new, c, L.cfg))
     L.k0.copy_(torch.where(new, T.k0[c], L.k0))
     L.k1.copy_(torch.where(new, T.k1[c], L.k1))
+    for dst, val in zip((L.r0, L.r1, L.r2, L.r3), walk_stream_start(lo, hi, T.k0[c], T.k1[c])):
+        dst.copy_(torch.where(new, val, dst))
     L.status.copy_(torch.where(new, RUNNING, torch.where(free, EMPTY, L.status)))
 
 
