@@ -42,6 +42,7 @@ import logging
 import os
 import sys
 import threading
+import weakref
 from pathlib import Path
 from typing import Any, Callable
 
@@ -152,8 +153,40 @@ def _signature(v: Any) -> Any:
     if isinstance(v, (list, tuple)):
         return tuple(map(_signature, v))
     if dataclasses.is_dataclass(v) and not isinstance(v, type):
-        return (type(v), tuple(_signature(getattr(v, f.name)) for f in dataclasses.fields(v)))
+        return _dataclass_signature(v)
     return (type(v), v)
+
+
+_MAX_REMEMBERED = 64  # dataclass signatures kept (a shard passes the same few lane chunks and tables)
+_remembered: dict[int, tuple[weakref.ref, tuple, Any]] = {}  # id -> (object, its fields, signature), weakly
+
+
+def _weak(x: Any) -> Any:
+    return weakref.ref(x) if isinstance(x, torch.Tensor) else x
+
+
+def _strong(x: Any) -> Any:
+    return x() if isinstance(x, weakref.ref) else x
+
+
+def _dataclass_signature(v: Any) -> Any:
+    """_signature of a dataclass, remembered for the object as long as every field still holds
+    the same objects (checked by identity on each call; a tensor's dtype, shape and strides do
+    not change in place here, where lanes are only written with copy_ and indexing).  The walk
+    passes the same lane chunks and tables on every call; walking their ~20 fields cost ~5 % of a
+    short walk's shard.  Held by weak references: remembering keeps nothing alive."""
+    values = tuple(getattr(v, f.name) for f in dataclasses.fields(v))
+    hit = _remembered.get(id(v))
+    if hit is not None and hit[0]() is v and len(hit[1]) == len(values) and all(_strong(a) is b for a, b in zip(hit[1], values)):
+        return hit[2]
+    sig = (type(v), tuple(map(_signature, values)))
+    if len(_remembered) >= _MAX_REMEMBERED:
+        _remembered.clear()
+    try:
+        _remembered[id(v)] = (weakref.ref(v), tuple(map(_weak, values)), sig)
+    except TypeError:  # a dataclass with __slots__ and no __weakref__: not remembered
+        pass
+    return sig
 
 
 class _Kernel:
