@@ -10,6 +10,10 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("BSSRDF_COMPILE", "0")
+if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest -n: one process per core already, so one torch thread each
+    import torch
+
+    torch.set_num_threads(1)
 
 import math  # noqa: E402
 
