@@ -147,7 +147,8 @@ def summary_table(result: Result) -> pa.Table:
     return pa.Table.from_pylist(rows, schema=SUMMARY_SCHEMA)
 
 
-RNG_FACT = "philox4x32-10, key sha256(seed|configuration), counter (photon, draw, purpose)"
+RNG_FACT = ("walk: xoshiro128+ per photon, started from philox4x32-10 at counter (photon, 0, 0); other draws: "
+            "philox4x32-10 at counter (photon, draw, purpose); key sha256(seed|configuration)")
 UNITS = {"length": "mm", "Rd_r": "1/mm^2", "S": "1/(mm^2 sr)", "G": "fraction of incident power"}
 NORMALISATION = "per unit incident power; the walk carries 1 - R_spec, so S includes the entry Fresnel factor"
 

@@ -50,8 +50,9 @@ Components
 
 Random numbers
     Philox-4x32-10 (:mod:`workers.walk.rng`), counter (photon low, photon high, draw, purpose), key from
-    (seed, configuration).  Purpose 0 is the walk step (one block of four uniforms per step:
-    free path, decision, cos(theta), phi); purposes >= 1 are the connection samples at a vertex.
+    (seed, configuration).  Purpose 0 with draw 0 starts the photon's walk stream (a xoshiro128+
+    state carried in its lane, four outputs per step: free path, decision, cos(theta), phi);
+    purposes >= 1 are the connection samples at a vertex.
 """
 
 TALLIED_COMPONENTS = ("single", "multiple")

@@ -35,7 +35,7 @@ the far field is what costs.
 **What it leaves alone.**  The first flight (from the entry point, before any scattering) is never
 stretched: the hybrid's first vertex is recomputed from the unstretched law (workers.walk.hybrid).
 The albedo does not enter the drawn geometry, so a shared walk's members still reweight by
-(a / a_w)^n (workers.fold.reweight).  The Philox draws are the same ones; only the free path is
+(a / a_w)^n (workers.fold.reweight).  The random draws are the same ones; only the free path is
 scaled, so a spec without ``stretch`` runs bit for bit as before.  The weight a step returns for
 a vertex (the connection estimator's) is the weight arriving there, the ratio included.
 """
