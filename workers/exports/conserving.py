@@ -38,7 +38,10 @@ run of zeros, always goes negative next to it. So:
   spline overshoots around, a lone light one, a fall steeper than the spline can follow) is
   pooled the same way, one at a time from the inside out until no interval dips
   (:func:`interval_minima`): of the measured nodes shaping the first dipping interval, the one
-  whose bin density stands out most (in log) from its measured neighbours'.
+  whose bin density stands out most (in log) from its measured neighbours'.  Where the dipping
+  interval lies in a run that holds empty bins, the measured node the run starts from is tried
+  as well and the one leaving less negative mass is pooled: single photons in the tiny innermost
+  bins make such a node a spike that the run's straight line carries outward.
 
 These nodes are modelled, not measured: their ``error`` is their whole value. The mass stays
 the measured mass of the pooled bins: each group (a measured bin and the pooled bins before
@@ -64,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schema.bins import pbrt_radial_edges, pbrt_radius_nodes
-from workers.models.catmull_rom import bin_integral_matrix, integrate_catmull_rom, interval_slopes
+from workers.models.catmull_rom import bin_integral_matrix, integrate_catmull_rom, interval_slopes, negative_mass
 
 from .nodes import HALF_WIDTH, node_values
 
@@ -173,12 +176,15 @@ def _solve(m: np.ndarray, anchored: np.ndarray, nodes: np.ndarray, scale: np.nda
     return K, K @ m
 
 
-def _next_to_pool(values: np.ndarray, anchored: np.ndarray, m: np.ndarray, edges: np.ndarray) -> int | None:
-    """The measured node to pool next, or None when the spline is >= 0 everywhere. The first
+def _next_to_pool(values: np.ndarray, anchored: np.ndarray, m: np.ndarray, edges: np.ndarray) -> tuple[int, ...] | None:
+    """The measured nodes to try pooling next, or None when the spline is >= 0 everywhere. The first
     interval i that dips below 0 (by more than rounding) is shaped by nodes i-1 .. i+2; of the
     measured ones, the bin whose density M_j / width_j stands out most from its measured
     neighbours' (in log, against the mean of the nearest measured bin on each side) is pooled:
-    a lone heavy event (a spike the spline overshoots around) or a lone light one (a hole)."""
+    a lone heavy event (a spike the spline overshoots around) or a lone light one (a hole).
+    Second, where interval i lies in a run that holds bins without events: the measured node the
+    run starts from (:func:`_pool_one` keeps the better of the two).  Runs of pooled measured
+    bins alone (a smooth profile's far tail) are left to the first rule."""
     dips = np.flatnonzero(interval_minima(pbrt_radius_nodes(len(values)), values) < -1e-12 * np.max(np.abs(values)))
     if not dips.size:
         return None
@@ -195,10 +201,36 @@ def _next_to_pool(values: np.ndarray, anchored: np.ndarray, m: np.ndarray, edges
         deviation = abs(ln_density[j] - np.mean(around)) if around else 0.0
         if deviation > worst:
             best, worst = j, deviation
-    if best is not None:
-        return best
-    after, before = np.flatnonzero(anchored[i + 1:]), np.flatnonzero(anchored[:i])
-    return int(i + 1 + after[0]) if after.size else int(before[-1])
+    if best is None:
+        after, before = np.flatnonzero(anchored[i + 1:]), np.flatnonzero(anchored[:i])
+        best = int(i + 1 + after[0]) if after.size else int(before[-1])
+    start = anchors[anchors < i]
+    if start.size and start[-1] < i - 1 and start[-1] != best:
+        s = int(start[-1])
+        end = anchors[anchors > s]
+        if np.any(m[s + 1 : int(end[0]) if end.size else len(m)] == 0):  # the run holds bins without events
+            return best, s
+    return (best,)
+
+
+def _pool_one(m, anchored, nodes, scale, values):
+    """Pool the next node (:func:`_next_to_pool`); returns (anchored, K, values) after it, or None
+    when the spline is >= 0 everywhere.  Where the dip lies in a pooled run, the measured node the
+    run starts from is tried too, and whichever leaves the spline less negative mass is pooled:
+    the run's straight line carries that node's value out to the dip, so a spike there (single
+    photons in the tiny innermost bins) would otherwise push the dip outward one pooled node at a
+    time until one node held the whole row."""
+    candidates = _next_to_pool(values, anchored, m, pbrt_radial_edges(len(m)))
+    if candidates is None:
+        return None
+    tried = []
+    for c in candidates:
+        trial = anchored.copy()
+        trial[c] = False
+        K, v = _solve(m, trial, nodes, scale)
+        tried.append((-negative_mass(nodes, v), trial, K, v))  # negative_mass is <= 0
+    _, trial, K, v = min(tried, key=lambda t: t[0])  # the first on a tie: the spike rule's choice
+    return trial, K, v
 
 
 def conserving_nodes(masses, masses_stderr, photons: int | None = None) -> NodeRow:
@@ -222,11 +254,10 @@ def conserving_nodes(masses, masses_stderr, photons: int | None = None) -> NodeR
     anchored = resolved.copy()
     K, values = _solve(m, anchored, nodes, scale)
     while anchored.sum() > 1:
-        c = _next_to_pool(values, anchored, m, pbrt_radial_edges(n))
-        if c is None:
+        pooled = _pool_one(m, anchored, nodes, scale, values)
+        if pooled is None:
             break
-        anchored[c] = False
-        K, values = _solve(m, anchored, nodes, scale)
+        anchored, K, values = pooled
     se0 = np.where(np.isfinite(se), se, 0.0)
     sigma = np.diag(se0 * se0)
     if photons is not None:
