@@ -53,7 +53,9 @@ BINS = {
     "cos_theta_o": {"count": 3},
     "phi_o": {"count": 2},
 }
-PHOTONS = {"exits": 60_000, "hybrid": 60_000, "connections": 6_000}
+# exits: 1e5, so that at eta 1.3 (analog) the single-scattering rings (~25 events per 6e4 photons) and
+# the third multiple-scattering ring (~30) clear MIN_EVENTS with a margin: >= 8 entries are tested.
+PHOTONS = {"exits": 100_000, "hybrid": 60_000, "connections": 6_000}
 
 
 FAMILIES = ("bins_G", "bins_S", "radial_G")
