@@ -192,10 +192,16 @@ def test_closed_reads_need_a_sign_in(make_client, published):
     assert client.get("/v1/jobs", headers={"Authorization": f"Bearer {session}"}).status_code == 401
 
 
+def _forged(value: str) -> str:
+    """value with the last character of its signature changed (to one it is not)."""
+    return value[:-1] + ("1" if value.endswith("0") else "0")
+
+
+# Fixed ids: the values hold the time, and pytest-xdist's workers must collect the same names.
 @pytest.mark.parametrize("value", [
     session_value("another-token"), session_value(TOKEN, now=time.time() - SESSION_SECONDS - 10),
-    session_value(TOKEN)[:-1] + "0", "garbage", "",
-])
+    _forged(session_value(TOKEN)), "garbage", "",
+], ids=["other-token", "expired", "forged-signature", "garbage", "empty"])
 def test_forged_or_expired_sessions_are_refused(make_client, published, value):
     store, storage, _ = published
     client = make_client(store, storage, read_open=False)
