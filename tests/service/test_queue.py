@@ -45,9 +45,12 @@ def test_merge_task_is_gated_on_all_shards(store):
 
 def test_expired_lease_is_reclaimed_with_new_token_and_counts_as_attempt(store):
     store.submit(queue_spec(shards=1))
-    first = store.claim("dead", SHORT)
+    # Long enough that the next claim comes before it expires on a loaded machine (0.2 s did not
+    # always, with the suite on every core), short enough to wait out.
+    lease = 2.0
+    first = store.claim("dead", lease)
     assert store.claim("w2", 30) is None  # lease still live
-    time.sleep(SHORT + 0.1)
+    time.sleep(lease + 0.1)
     second = store.claim("w2", 30)
     assert second.task_id == first.task_id and second.token > first.token
     assert second.attempts == 2
