@@ -44,7 +44,7 @@ def test_hybrid_kernel_squares_per_photon(walk_spec):
     plan = ShardPlan.build(spec, 0)
     runner = _Runner(plan, None)
     with torch.no_grad():
-        runner.finish_and_refill()
+        runner.fill()
         for _ in range(6):
             for k in range(runner.active):
                 runner.kernels.step(runner.chunks[k])

@@ -26,7 +26,7 @@ from workers.walk.phase import phase_of
 from workers.walk.rng import stream_key, to_i32
 from workers.walk.walk import ConfigTable, WalkParams, compile_enabled
 
-__all__ = ["ShardPlan", "config_table", "chunk_count", "CHUNK", "VERTEX_CHUNK", "EXIT_BLOCK", "HARVEST_DIVISOR"]
+__all__ = ["ShardPlan", "config_table", "chunk_count", "CHUNK", "VERTEX_CHUNK", "EXIT_BLOCK", "HARVEST_BLOCK", "HARVEST_DIVISOR"]
 
 CHUNK = 1 << 14  # lanes per call of the compiled step (one static shape for every shard); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
@@ -36,7 +36,8 @@ TAIL_DIVISOR = 8  # exit walk: the last photons of a shard run in chunks of 1/TA
 PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
 EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
-EXIT_BLOCK = 1 << 12  # exit events per call of the compiled exit lookup (a harvest of M2 has ~7500)
+EXIT_BLOCK = 1 << 12  # finished photons per call of the hybrid's compiled entries kernel
+HARVEST_BLOCK = 1 << 12  # lanes per call of the compiled harvest (record + refill); a harvest of M2 has ~18000
 HARVEST_DIVISOR = 8  # harvest once 1/HARVEST_DIVISOR of the lanes has finished (4 and 32 ran M1 slower here)
 
 

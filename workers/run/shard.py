@@ -22,11 +22,11 @@ from schema import SimulationSpec
 from workers.walk.binning import histogram_index
 from workers.walk.connections import Vertices, VertexBuffer, connection_function
 from workers.walk.engine import init_engine
-from workers.walk.harvest import exit_function, finish_function
+from workers.walk.harvest import harvest_function
 from workers.walk.hybrid import entries_function
 from workers.walk.path_roulette import check_steps_per_call, roulette_round
 from workers.fold.reweight import MemberTallies, member_prefix
-from .plan import EXIT_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
+from .plan import EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
 from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
 from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
@@ -38,8 +38,7 @@ class _Kernels:
     """The (compiled or eager) functions a shard run calls, chosen once from its plan."""
 
     step: Callable  # steps a chunk of lanes in place (workers.walk.walk.step_function)
-    finish: Callable  # records finished lanes and refills them (workers.walk.harvest.finish_and_refill)
-    exits: Callable  # exit events' bins (workers.walk.harvest.exit_bins)
+    harvest: Callable  # records lanes not running and refills them (workers.walk.harvest.harvest_block)
     entries: Callable  # the hybrid's entries per photon (workers.walk.hybrid.photon_entries)
     connect: Callable  # both connection techniques for a chunk of vertices
 
@@ -47,7 +46,7 @@ class _Kernels:
     def for_plan(cls, plan: ShardPlan) -> "_Kernels":
         c = plan.compiled
         return cls(
-            step=step_function(plan.params, plan.n_steps, plan.connect, c), finish=finish_function(c), exits=exit_function(c),
+            step=step_function(plan.params, plan.n_steps, plan.connect, c), harvest=harvest_function(c),
             entries=entries_function(c), connect=connection_function(c),
         )  # fmt: skip
 
@@ -84,7 +83,7 @@ class _Runner:
                                          plan.cfgs.n, plan.layout.shape)  # fmt: skip
         self.vertex_buffer = VertexBuffer(VERTEX_CHUNK)
         # Lanes: [0, active * chunk) hold every running photon; chunks are views stepped one by one.
-        self.lanes = Lanes.empty(plan.n_lanes)
+        self.lanes = Lanes.empty(plan.n_lanes + 1)  # the last: a scratch lane that pads harvest blocks, never stepped
         self.chunk = plan.chunk
         self.chunks = [self.lanes.view(a, a + self.chunk) for a in range(0, plan.n_lanes, self.chunk)]
         self.active = len(self.chunks)
@@ -92,29 +91,44 @@ class _Runner:
         self.tail_lanes = None  # photons still running when the tail chunk took over
 
     # -- lanes --------------------------------------------------------------------------------
-    def finish_and_refill(self) -> tuple[int, int]:
-        """Record the finished photons (walk totals; their exits must be tallied already) and
-        launch the next photons into the lanes not running, in lane order; returns (photons
-        finished, photons launched).  One pass over all the lanes (one compiled shape per lane
-        count): in the tail, where only the first chunk runs, the rest are EMPTY and cost little."""
-        plan = self.plan
-        launch = torch.tensor([plan.start, self.next_launch, plan.n_launch, plan.cfgs.n], dtype=torch.int64)
-        if self.members is not None:  # the finished lanes' state, before the refill overwrites it
-            L = self.lanes
-            snap = (L.status.clone(), L.nscat.clone(), L.w.clone())
-        key, absorbed, truncated, n_free, steps = self.kernels.finish(self.lanes, plan.table, launch, plan.exit_bins.batch_starts)
-        launched = min(int(n_free), plan.n_launch - self.next_launch)
+    def finish_and_refill(self, idx: torch.Tensor) -> tuple[int, int]:
+        """Record the finished photons of lanes idx (ascending lanes not running; the hybrid's
+        entries must be tallied already) and launch the next photons into those lanes, in lane
+        order: :func:`workers.walk.harvest.harvest_block` over HARVEST_BLOCK lanes at a time, so
+        the work is per lane harvested, not per lane of the array.  The exit tally's entries come
+        from the same pass.  Returns (photons finished, photons launched)."""
+        plan, L = self.plan, self.lanes
+        launched = min(len(idx), plan.n_launch - self.next_launch)
+        outs = []
+        for a in range(0, len(idx), HARVEST_BLOCK):
+            block = idx[a : a + HARVEST_BLOCK]
+            m = len(block)
+            if m < HARVEST_BLOCK and plan.compiled:  # one static shape: pad with the scratch lane
+                block = torch.cat((block, torch.full((HARVEST_BLOCK - m,), plan.n_lanes, dtype=torch.int64)))
+            launch = torch.tensor([plan.start, self.next_launch + a, plan.n_launch, plan.cfgs.n], dtype=torch.int64)
+            out = self.kernels.harvest(block, torch.tensor(m, dtype=torch.int64), L, plan.table, launch, plan.exit_bins)
+            outs.append([v[:m].numpy() for v in out])
         self.next_launch += launched
-        self.count.photon_steps += int(steps)
-        if not int(steps):
+        if not outs:
             return 0, launched
-        key = key.numpy()
+        flat, g, s, key, absorbed, truncated, steps, status, nscat, w = (np.concatenate(v) for v in zip(*outs))
+        self.count.photon_steps += int(steps.sum())
         done = key < len(self.acc.sizes) * plan.cfgs.n
-        self.photons.add_walk(key[done] % plan.cfgs.n, absorbed.numpy()[done], truncated.numpy()[done])
+        cfg = key[done] % plan.cfgs.n
+        self.photons.add_walk(cfg, absorbed[done], truncated[done])
+        ex = status == EXITED
+        if "exits" in plan.estimators:
+            self.photons.add_exits("exits", flat[ex], g[ex], s[ex])
         if self.members is not None:
-            st, nscat, w = (t.numpy()[done] for t in snap)
-            self.members.add_walk(key[done] % plan.cfgs.n, st == EXITED, st == TRUNCATED, w, nscat)
+            if "exits" in plan.estimators:
+                self.members.add_exits(flat[ex], g[ex], s[ex], nscat[ex])
+            st = status[done]
+            self.members.add_walk(cfg, st == EXITED, st == TRUNCATED, w[done], nscat[done])
         return self.acc.finish_photons(key), launched
+
+    def fill(self) -> int:
+        """Launch the first photons into every lane (all EMPTY); returns how many were launched."""
+        return self.finish_and_refill(torch.arange(self.plan.n_lanes))[1]
 
     def shrinkable(self, running: int) -> bool:
         """Whether compact() would step fewer lanes: nothing is left to launch and the running
@@ -147,11 +161,13 @@ class _Runner:
     def harvest(self, running: int) -> int:
         """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
         st = self.lanes.status[: self.active * self.chunk]
-        if "exits" in self.plan.estimators:
-            self.tally_exits(torch.nonzero(st == EXITED).squeeze(1))
+        done = (st != RUNNING) & (st != EMPTY)
         if "hybrid" in self.plan.estimators:
-            self.tally_hybrid(torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1))
-        finished, launched = self.finish_and_refill()
+            self.tally_hybrid(torch.nonzero(done).squeeze(1))
+        # While photons are left to launch every lane not running is refilled (there are no EMPTY
+        # lanes then but at the start); afterwards only the finished ones are recorded.
+        free = st != RUNNING if self.next_launch < self.plan.n_launch else done
+        finished, launched = self.finish_and_refill(torch.nonzero(free).squeeze(1))
         if self.acc.ready:
             self.flush_vertices(force=True)  # a batch folds only after all its vertices are tallied
             self.acc.fold_ready()
@@ -173,14 +189,6 @@ class _Runner:
                 block = torch.cat((block, block[:1].expand(EXIT_BLOCK - m)))
             out = fn(block)
             yield [(v[:m] if ax == 0 else v[:, :m]).numpy() for v, ax in zip(out, axis or (0,) * len(out))]
-
-    def tally_exits(self, idx: torch.Tensor) -> None:
-        """Tally the exit events of lanes idx: one entry per photon."""
-        fn = lambda b: (*self.kernels.exits(b, self.lanes, self.plan.exit_bins), self.lanes.nscat[b])  # noqa: E731
-        for flat, _batch, g, s, nscat in self._blocks(idx, fn):
-            self.photons.add_exits("exits", flat, g, s)
-            if self.members is not None:
-                self.members.add_exits(flat, g, s, nscat)
 
     def tally_hybrid(self, idx: torch.Tensor) -> None:
         """The hybrid estimator's entries of the photons finished in lanes idx: the first-vertex
@@ -250,7 +258,7 @@ class _Runner:
 
     def _run(self, t0: float) -> ShardTally:
         plan = self.plan
-        running = self.finish_and_refill()[1]
+        running = self.fill()
         # Harvesting costs a pass over the lanes plus Python work: wait until an eighth of the
         # lanes has finished (or none runs) so the cost is spread over many photons.
         harvest_at = max(1, plan.n_lanes // HARVEST_DIVISOR)

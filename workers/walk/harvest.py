@@ -44,9 +44,12 @@ finite second moment when c is drawn in the bin by a density ~ c^(-1/2) or steep
 the phase function it still diverges logarithmically); in a one-vertex model E[x^2] stays flat
 from 1e4 to 1e7 samples and t has mean -0.04, variance 1.02 (exit tally: -0.20, 1.16).
 
-Every finished photon (exited, absorbed or truncated) is then recorded and its lane refilled by
-:func:`finish_and_refill`, one pass over the lanes: per lane a (batch, configuration) key and the
-absorbed and truncated weights, whose float sums the caller forms with an ordered bincount."""
+Every lane not running is then recorded and refilled by :func:`harvest_block`, one compiled
+pass over a block of those lanes' indices that also makes the exit tally's entries: per lane
+a (batch, configuration) key, the absorbed and truncated weights and the exit's (flat, G, S),
+whose float sums the caller forms with ordered bincounts.  The work is per harvested lane: an
+earlier version refilled with one pass over every lane of the array and looked exits up in a
+second kernel, and on short paths (M2) that cost more than the walk (BENCHMARKS.md)."""
 
 from __future__ import annotations
 
@@ -58,9 +61,9 @@ import torch
 from .binning import azimuth_index, histogram_index, outgoing_azimuth, uniform_index
 from .kernels import compile_kernel
 from .optics import refracted_cos
-from .walk import EMPTY, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_lanes
+from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_at
 
-__all__ = ["ExitBins", "batch_index", "count_le", "exit_bins", "exit_function", "finish_and_refill", "finish_function"]
+__all__ = ["ExitBins", "batch_index", "count_le", "exit_bins", "harvest_block", "harvest_function"]
 
 
 @dataclass(frozen=True)
@@ -144,38 +147,49 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     return flat, batch, wd, wd / cos_o
 
 
-@lru_cache(maxsize=None)
-def exit_function(compiled: bool):
-    """:func:`exit_bins` over a block of lane indices, compiled for one block size (the caller
-    pads) or eager."""
-    return compile_kernel(exit_bins, "exit_bins") if compiled else exit_bins
+def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table: ConfigTable, launch: torch.Tensor, bins: ExitBins):
+    """Record the photons of lanes idx and refill those lanes: the harvest's work per lane that
+    is not running, not per lane of the array.
 
-
-def finish_and_refill(lanes: Lanes, table: ConfigTable, launch: torch.Tensor, batch_starts: torch.Tensor):
-    """Record the finished lanes and start new photons in every lane not running.
-
-    For each lane, before the refill: key = batch * n_cfg + cfg of a finished photon (EXITED,
-    ABSORBED or TRUNCATED), n_batches * n_cfg (a spare slot) for any other lane; its absorbed
-    weight and truncated weight (float64, 0 for lanes not finished).  Then the refill of
-    :func:`workers.walk.walk.refill_lanes` with `launch`.  Returns (key, absorbed, truncated, n_free,
-    steps): n_free the lanes that were not running (the refill launched min(n_free, launches
-    left) photons), steps the interaction steps of the finished photons (int64 scalars).  Only
-    integer reductions: the float sums are left to the caller's ordered bincount, so results do
-    not depend on how the kernel is threaded.
+    idx: int64 [B] lanes in ascending order, its first n_valid (an int64 scalar) real, the rest
+    padding that points at a scratch lane beyond the stepped ones; launch = int64 [start photon,
+    launch number of position 0, launches in the shard, configurations].  Position j records,
+    before the refill:
+    - flat, G, S: the exit tally's entry (:func:`exit_bins`) if the lane EXITED, else flat 0 and
+      G = S = 0, which leave every sum of the tally as it is;
+    - key = batch * n_cfg + cfg of a finished photon (EXITED, ABSORBED or TRUNCATED), else
+      n_batches * n_cfg (a spare slot); its absorbed weight and its truncated weight (float64, 0
+      for lanes not finished); steps: its interaction steps (0 if not finished);
+    - status, nscat, w: the lane's state, for reweighted members (workers.fold.reweight).
+    Then position j (valid) gets launch number q = launch[1] + j, photon start + q // n_cfg of
+    configuration q % n_cfg, while q < launches; other valid lanes become EMPTY
+    (:func:`workers.walk.walk.refill_at`): over a harvest's blocks, the k-th lane not running
+    (in lane order) gets launch number next + k.  No float reductions: the caller sums with
+    ordered bincounts, so results do not depend on how the kernel is threaded.
     """
-    n_cfg, status = launch[3], lanes.status
-    done = (status != RUNNING) & (status != EMPTY)
-    batch = batch_index(lanes.photon, batch_starts)
-    key = torch.where(done, batch * n_cfg + lanes.cfg, batch_starts.shape[0] * n_cfg)
-    absorbed_d = torch.where(done, lanes.absorbed.double(), 0.0)
-    truncated = torch.where(status == TRUNCATED, lanes.w.double(), 0.0)
-    n_free = (status != RUNNING).sum()
-    steps = torch.where(done, lanes.step.to(torch.int64), 0).sum()
-    refill_lanes(lanes, table, launch)
-    return key, absorbed_d, truncated, n_free, steps
+    start, nxt, n_launch, n_cfg = launch[0], launch[1], launch[2], launch[3]
+    pos = torch.arange(idx.shape[0], dtype=torch.int64)
+    valid = pos < n_valid
+    status = lanes.status[idx]
+    done = valid & (status != RUNNING) & (status != EMPTY)
+    exited = valid & (status == EXITED)
+    flat, batch, g, s = exit_bins(idx, lanes, bins)
+    flat = torch.where(exited, flat, 0)
+    g, s = torch.where(exited, g, 0.0), torch.where(exited, s, 0.0)
+    key = torch.where(done, batch * n_cfg + lanes.cfg[idx], bins.batch_starts.shape[0] * n_cfg)
+    absorbed = torch.where(done, lanes.absorbed[idx].double(), 0.0)
+    w = lanes.w[idx]
+    truncated = torch.where(valid & (status == TRUNCATED), w.double(), 0.0)
+    steps = torch.where(done, lanes.step[idx], 0)
+    nscat = lanes.nscat[idx]
+    q = nxt + pos
+    new = valid & (q < n_launch)
+    q = torch.where(new, q, 0)
+    refill_at(lanes, table, idx, start + q // n_cfg, q % n_cfg, new, valid)
+    return flat, g, s, key, absorbed, truncated, steps, status, nscat, w
 
 
 @lru_cache(maxsize=None)
-def finish_function(compiled: bool):
-    """:func:`finish_and_refill`, compiled (static chunk shapes) or eager."""
-    return compile_kernel(finish_and_refill, "finish_refill") if compiled else finish_and_refill
+def harvest_function(compiled: bool):
+    """:func:`harvest_block`, compiled for one block size (the caller pads) or eager."""
+    return compile_kernel(harvest_block, "harvest_block") if compiled else harvest_block

@@ -4,7 +4,7 @@ A fixed array of *lanes* holds photons in flight.  :func:`walk_step` advances ev
 by one interaction (fly, hit the boundary or collide, Fresnel, absorb / roulette, scatter) with
 masks and no Python branching on values, so torch.compile fuses it into a few passes over memory;
 finished lanes keep their final state until the shard runner harvests them and refills the lane
-with the next photon (:func:`refill_lanes`, run by :func:`workers.walk.harvest.finish_and_refill`).  All lengths are optical (sigma_t = 1, see
+with the next photon (:func:`refill_at`, run by :func:`workers.walk.harvest.harvest_block`).  All lengths are optical (sigma_t = 1, see
 :mod:`workers.walk.conventions`), so one walk serves every channel and incidence angle at once.
 
 Random numbers: each photon carries its own xoshiro128+ state (lanes r0..r3), started at launch
@@ -28,7 +28,7 @@ from .phase import DEFAULT_PHASE, phase_function
 from .rng import photon_words, stream_draws, stream_start, uniform_halfopen, uniform_open
 from .stretch import stretch_factors
 
-__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "ConfigTable", "STEP_FIELDS", "walk_step", "step_function", "refill_lanes", "compile_enabled", "walk_stream_start"]
+__all__ = ["RUNNING", "EXITED", "ABSORBED", "TRUNCATED", "EMPTY", "Lanes", "WalkParams", "ConfigTable", "STEP_FIELDS", "walk_step", "step_function", "refill_at", "compile_enabled", "walk_stream_start"]
 
 # Lane status codes (int32: an int8 status made inductor convert masks element by element).
 RUNNING = 0  # photon in flight
@@ -101,7 +101,7 @@ class Lanes:
 
     def start_streams(self) -> None:
         """Start every lane's walk stream from its photon and key words (c_lo, c_hi, k0, k1), in
-        place: what a launch does (:func:`refill_lanes`), for callers that set lanes up by hand."""
+        place: what a launch does (:func:`refill_at`), for callers that set lanes up by hand."""
         for dst, val in zip((self.r0, self.r1, self.r2, self.r3), walk_stream_start(self.c_lo, self.c_hi, self.k0, self.k1)):
             dst.copy_(val)
 
@@ -250,40 +250,27 @@ def _step_inplace(lanes: Lanes, p: WalkParams, n_steps: int, want_vertices: bool
     return counts, vertex
 
 
-def refill_lanes(lanes: Lanes, table: ConfigTable, launch: torch.Tensor) -> None:
-    """Start new photons in every lane that is not RUNNING, in lane order, in place.
+def refill_at(lanes: Lanes, table: ConfigTable, idx: torch.Tensor, pid: torch.Tensor, c: torch.Tensor, new: torch.Tensor, valid: torch.Tensor) -> None:
+    """Launch photon pid[j] of configuration c[j] in lane idx[j] where new[j], in place; a lane
+    idx[j] that is valid[j] but not new becomes EMPTY, its other fields undefined; padding
+    positions (not valid) may write anything into their lane but its status.
 
-    launch = int64 [start photon, next launch number, launches in the shard, configurations]:
-    the k-th free lane (k = 0, 1, ...) gets launch number q = next + k, i.e. photon
-    start + q // n_cfg of configuration q % n_cfg, while q < launches; the remaining free lanes
-    become EMPTY.  A new photon sits at the origin travelling along the refracted incident
-    direction of its configuration with weight 1 - R_spec, its walk stream started
-    (:func:`walk_stream_start`).
-    """
+    A new photon sits at the origin travelling along the refracted incident direction of its
+    configuration with weight 1 - R_spec, its walk stream started (:func:`walk_stream_start`).
+    Work and memory traffic are per index, not per lane: a harvest's refill costs what the
+    finished photons cost, not what the lane array does (:func:`workers.walk.harvest.harvest_block`)."""
     L, T = lanes, table
-    start, nxt, n_launch, n_cfg = launch[0], launch[1], launch[2], launch[3]
-    free = L.status != RUNNING
-    q = nxt + torch.cumsum(free.to(torch.int64), 0) - 1
-    new = free & (q < n_launch)
-    q = torch.where(new, q, 0)  # keeps the gathers below in range on lanes that are not refilled
-    c = q % n_cfg
-    zero = torch.zeros_like(L.x)
-    for dst, val in ((L.x, zero), (L.y, zero), (L.z, zero), (L.uy, zero), (L.absorbed, zero),
-                     (L.ux, T.ux0[c]), (L.uz, T.uz0[c]), (L.w, T.w0[c]), (L.albedo, T.albedo[c]), (L.g, T.g[c])):  # fmt: skip
-        dst.copy_(torch.where(new, val, dst))
-    L.nscat.copy_(torch.where(new, 0, L.nscat))
-    L.step.copy_(torch.where(new, 0, L.step))
-    pid = start + q // n_cfg
-    L.photon.copy_(torch.where(new, pid, L.photon))
+    zero = torch.zeros(idx.shape, dtype=torch.float32)
     lo, hi = photon_words(pid)
-    L.c_lo.copy_(torch.where(new, lo, L.c_lo))
-    L.c_hi.copy_(torch.where(new, hi, L.c_hi))
-    L.cfg.copy_(torch.where(new, c, L.cfg))
-    L.k0.copy_(torch.where(new, T.k0[c], L.k0))
-    L.k1.copy_(torch.where(new, T.k1[c], L.k1))
-    for dst, val in zip((L.r0, L.r1, L.r2, L.r3), walk_stream_start(lo, hi, T.k0[c], T.k1[c])):
-        dst.copy_(torch.where(new, val, dst))
-    L.status.copy_(torch.where(new, RUNNING, torch.where(free, EMPTY, L.status)))
+    k0, k1 = T.k0[c], T.k1[c]
+    r = walk_stream_start(lo, hi, k0, k1)
+    values = ((L.x, zero), (L.y, zero), (L.z, zero), (L.uy, zero), (L.absorbed, zero),
+              (L.ux, T.ux0[c]), (L.uz, T.uz0[c]), (L.w, T.w0[c]), (L.albedo, T.albedo[c]), (L.g, T.g[c]),
+              (L.nscat, torch.zeros_like(lo)), (L.step, torch.zeros_like(lo)), (L.photon, pid), (L.c_lo, lo), (L.c_hi, hi),
+              (L.cfg, c), (L.k0, k0), (L.k1, k1), (L.r0, r[0]), (L.r1, r[1]), (L.r2, r[2]), (L.r3, r[3]))  # fmt: skip
+    for dst, val in values:  # unconditional: a lane that is not started is EMPTY or the scratch lane, whose fields no one reads
+        dst[idx] = val
+    L.status[idx] = torch.where(new, RUNNING, torch.where(valid, EMPTY, L.status[idx]))
 
 
 def compile_enabled() -> bool:
