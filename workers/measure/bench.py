@@ -55,7 +55,9 @@ def bench_one(medium: str, estimator: str, photons: int, threads: int = 1, repea
     spec = _spec(medium, estimator, photons * threads, threads)
     runs = []
     with ShardPool(threads, warm_spec=warm) as pool:
-        pool.run(_spec(medium, estimator, max(8, photons // 20) * threads, threads), range(threads))  # the pool's first run pays set-up costs
+        # The pool's first run pays set-up costs, among them kernels compiled for the lane counts
+        # of a full-size shard (a smaller first run left one timed run ~17x slow).
+        pool.run(spec, range(threads))
         for _ in range(repeat):
             wall0 = time.perf_counter()
             tallies = pool.run(spec, range(threads))
