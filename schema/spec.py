@@ -365,11 +365,13 @@ class SimulationSpec(BaseModel):
         """The fully-defaulted, normalised model as JSON with sorted keys and no whitespace.
 
         Of "medium" and "sweep" only the one given appears, so a single-medium spec hashes as
-        it did before sweeps existed; likewise "target", "path_roulette" and "stretch" only when given."""
+        it did before sweeps existed; likewise "target", "path_roulette" and "stretch" (and its "gamma_inward") only when given."""
         data = self.model_dump(mode="json")
         for form in ("medium", "sweep", "target", "path_roulette", "stretch"):
             if data[form] is None:
                 del data[form]
+        if "stretch" in data and data["stretch"]["gamma_inward"] is None:  # added later: absent, old hashes hold
+            del data["stretch"]["gamma_inward"]
         return json.dumps(data, sort_keys=True,
                           separators=(",", ":"), ensure_ascii=False, allow_nan=False)
 

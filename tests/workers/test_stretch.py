@@ -5,13 +5,15 @@
   the weight after it is exactly the likelihood ratio exp(-gamma mu s) / sigma* and its mean is 1;
   a flight that reaches the surface carries exp(-gamma mu t), so the weight leaving has the
   expectation exp(-t) of the unstretched law; first flights, flights inside r_min and albedos at
-  or above albedo_max are left alone;
+  or above albedo_max are left alone; with gamma_inward, inward flights follow their own density
+  and ratio (and the derived second and fourth moments of the ratio), outward ones are bitwise
+  unchanged;
 - whole walks with stretching agree with plain independent walks in every radial bin with >= 30
   events, Rd and absorbed power (two seeds, z with unit spread), exit tally and hybrid, shared
-  walks included; Rd at eta = 1, g = 0 matches Chandrasekhar's H-function; the far bins get many
+  walks and gamma_inward included; Rd at eta = 1, g = 0 matches Chandrasekhar's H-function; the far bins get many
   more events (the point of it);
 - the same spec gives the same bytes on one thread and on two processes; bad fields are refused
-  with their name and range; off by default and absent from the canonical spec.
+  with their name and range; off by default and absent from the canonical spec (gamma_inward too).
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ def lanes_from(n: int, x: float, u: tuple[float, float, float], z: float, *, nsc
     return lanes
 
 
-def step(lanes: Lanes, stretch=(GAMMA, 1.0, 0.7)) -> Lanes:
+def step(lanes: Lanes, stretch=(GAMMA, 1.0, 0.7, GAMMA)) -> Lanes:
     """One step at eta = 1, without Russian roulette (w_min 0): the weight after a collision is
     w albedo times the flight's factor."""
     return walk_step(lanes, p=WalkParams(inv_eta=1.0, analog=False, max_scatter=1 << 20, w_min=0.0, stretch=stretch))[0]
@@ -67,7 +69,7 @@ CASES = [(2.0, (1.0, 0.0, 0.0), 1.0), (2.0, (0.6, 0.0, -0.8), 0.6), (2.0, (0.0, 
 def test_stretched_free_path_follows_its_density_and_carries_the_likelihood_ratio(x, u, mu):
     n = 1 << 17
     before = lanes_from(n, x, u, z=-300.0)  # deep: every flight ends in a collision (and float32 resolves it)
-    after = step(before, stretch=(GAMMA, 0.0 if x == 0.0 else 1.0, 0.7))  # r_min 0 on the axis
+    after = step(before, stretch=(GAMMA, 0.0 if x == 0.0 else 1.0, 0.7, GAMMA))  # r_min 0 on the axis
     s = flight_lengths(before, after)
     sig = 1.0 - GAMMA * mu
     edges = np.concatenate([np.linspace(0.0, 6.0 / sig, 41), [np.inf]])
@@ -95,6 +97,70 @@ def test_a_stretched_flight_leaves_with_the_unstretched_expectation(mu):
     assert abs(left.mean() - math.exp(-t)) <= 4.0 * left.std() / math.sqrt(n), (left.mean(), math.exp(-t))
 
 
+# -- a separate inward strength ------------------------------------------------------------------
+
+GAMMA_IN = 0.3  # the largest allowed: the fourth moment of an inward ratio is finite below 1/3
+
+
+@pytest.mark.parametrize("u, mu", [((-1.0, 0.0, 0.0), -1.0), ((-0.6, 0.0, -0.8), -0.6)])
+def test_inward_flights_use_gamma_inward_for_their_density_and_ratio(u, mu):
+    n = 1 << 17
+    before = lanes_from(n, 2.0, u, z=-300.0)
+    after = step(before, stretch=(GAMMA, 1.0, 0.7, GAMMA_IN))
+    s = flight_lengths(before, after)
+    sig = 1.0 - GAMMA_IN * mu
+    edges = np.concatenate([np.linspace(0.0, 6.0 / sig, 41), [np.inf]])
+    assert_samples_match_pdf(s, lambda v: sig * math.exp(-sig * v), edges, n_tests=2, what=f"inward free path, mu {mu}")
+    w = after.w.double().numpy() / np.float32(0.5)
+    np.testing.assert_allclose(w, np.exp(-GAMMA_IN * mu * s) / sig, rtol=2e-5)
+    se = w.std() / math.sqrt(n)
+    assert abs(w.mean() - 1.0) <= 4.0 * se, (w.mean(), se)
+
+
+def test_an_inward_ratio_has_the_second_moment_derived_and_a_finite_fourth():
+    """E[ratio^k] = sigma*^(1-k) / (1 + (k-1) gamma mu) (workers.walk.stretch): at gamma_in 0.3
+    straight inward (sigma* 1.3) k = 2 gives 1 / (1.3 * 0.7) and k = 4 is finite (4.55), so the
+    sample mean of ratio^2 has a finite variance and is tested against the formula with its own
+    error bar.  (The ratio's tail is Pareto, P(ratio > x) = (x sigma*)^-(1 + 1 / (gamma |mu|)), index
+    4.33 here: the chi-square of the free path above pins it.  Higher sample moments are not tested:
+    the eighth is infinite, so the spread of ratio^2 itself would not settle.  At gamma 0.8 the
+    same flight's fourth moment is infinite: 1 + 3 * 0.8 * -1 < 0.)"""
+    n = 1 << 18
+    before = lanes_from(n, 2.0, (-1.0, 0.0, 0.0), z=-300.0)
+    w = step(before, stretch=(GAMMA, 1.0, 0.7, GAMMA_IN)).w.double().numpy() / np.float32(0.5)
+    sig = 1.0 + GAMMA_IN
+
+    def moment(k):
+        return sig ** (1 - k) / (1.0 - (k - 1) * GAMMA_IN)
+
+    w2 = w * w
+    se = math.sqrt((moment(4) - moment(2) ** 2) / n)  # from the derived moments, not the sample
+    assert abs(w2.mean() - moment(2)) <= 4.0 * se, (w2.mean(), moment(2), se)
+
+
+@pytest.mark.parametrize("x, u", [(2.0, (1.0, 0.0, 0.0)), (2.0, (0.6, 0.0, -0.8)), (2.0, (0.0, 0.6, -0.8)), (0.0, (0.6, 0.0, -0.8))])
+def test_outward_and_sideways_flights_ignore_gamma_inward_bit_for_bit(x, u):
+    n = 1 << 12
+    before = lanes_from(n, x, u, z=-300.0)
+    one = step(before, stretch=(GAMMA, 0.0, 0.7, GAMMA))
+    two = step(before, stretch=(GAMMA, 0.0, 0.7, GAMMA_IN))
+    for name in ("x", "y", "z", "w", "status"):
+        assert torch.equal(getattr(one, name), getattr(two, name)), name
+
+
+def test_an_inward_flight_with_gamma_inward_leaves_with_the_unstretched_expectation():
+    n, h, mu = 1 << 17, 0.4, -0.9
+    uz = math.sqrt(1.0 - mu * mu)
+    after = step(lanes_from(n, 2.0, (mu, 0.0, uz), z=-h), stretch=(GAMMA, 1.0, 0.7, GAMMA_IN))
+    out = after.status.numpy() == EXITED
+    t, sig = h / uz, 1.0 - GAMMA_IN * mu
+    share, sd = out.mean(), math.sqrt(math.exp(-sig * t) * (1 - math.exp(-sig * t)) / n)
+    assert abs(share - math.exp(-sig * t)) <= 4.0 * sd, (share, math.exp(-sig * t))
+    np.testing.assert_allclose(after.w.double().numpy()[out], math.exp(-GAMMA_IN * mu * t), rtol=1e-5)
+    left = np.where(out, after.w.double().numpy(), 0.0)
+    assert abs(left.mean() - math.exp(-t)) <= 4.0 * left.std() / math.sqrt(n), (left.mean(), math.exp(-t))
+
+
 @pytest.mark.parametrize("x, nscat, albedo", [(2.0, 0, 0.5), (0.5, 3, 0.5), (2.0, 3, 0.7), (2.0, 3, 0.9)])
 def test_first_flights_near_flights_and_high_albedos_are_not_stretched(x, nscat, albedo):
     n = 1 << 12
@@ -108,17 +174,21 @@ def test_first_flights_near_flights_and_high_albedos_are_not_stretched(x, nscat,
 # -- whole walks --------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module", params=["exits", "hybrid"])
+STRETCH_IN = {**STRETCH, "gamma_inward": GAMMA_IN}
+
+
+@pytest.fixture(scope="module", params=[("exits", STRETCH), ("hybrid", STRETCH), ("exits", STRETCH_IN)],
+                ids=["exits", "hybrid", "exits-gamma-inward"])
 def pair(request):
-    est = request.param
-    return (est, sweep_results(sweep_spec(est, "shared", 1, 2**15, albedos=LOW, stretch=STRETCH)),
+    est, stretch = request.param
+    return (est, sweep_results(sweep_spec(est, "shared", 1, 2**15, albedos=LOW, stretch=stretch)),
             sweep_results(sweep_spec(est, "independent", 2, 2**15, albedos=LOW)))
 
 
 @pytest.mark.slow
 def test_stretched_shared_walks_agree_with_plain_independent_walks_in_every_bin(pair, walk_stats):
     est, st, plain = pair
-    assert_rows_agree(st, plain, est, f"{est}: stretched {STRETCH} shared (seed 1) against plain independent (seed 2)", walk_stats)
+    assert_rows_agree(st, plain, est, f"{est}: stretched shared (seed 1) against plain independent (seed 2)", walk_stats)
 
 
 @pytest.mark.slow
@@ -181,6 +251,8 @@ def test_same_bytes_on_one_thread_and_two_processes(tmp_path):
     ({"albedo_max": 0}, ["stretch.albedo_max", "(0, 1]", "0"]),
     ({"albedo_max": 1.5}, ["stretch.albedo_max", "(0, 1]", "1.5"]),
     ({"gama": 0.5}, ["stretch.gama"]),
+    ({"gamma_inward": 0.31}, ["stretch.gamma_inward", "[0, 0.3]", "0.31"]),
+    ({"gamma_inward": -0.1}, ["stretch.gamma_inward", "[0, 0.3]", "-0.1"]),
 ])
 def test_bad_stretch_fields_are_refused_with_the_field_and_range(value, words):
     assert_refused("stretch", value, words)
@@ -190,14 +262,29 @@ def test_off_by_default_and_absent_from_the_canonical_spec():
     assert_optional_field("stretch", STRETCH)
 
 
-def test_table_cost_passes_the_stretch_to_its_sweep(capsys):
+def test_gamma_inward_is_absent_from_the_canonical_spec_unless_given():
+    """A stretch written before gamma_inward existed hashes as it did; giving it (even equal to
+    gamma, which walks the same paths) is a different spec."""
+    import json
+
+    old = sweep_spec("hybrid", "shared", 1, 100, stretch=STRETCH)
+    assert json.loads(old.canonical_json())["stretch"] == {"gamma": GAMMA, "r_min_mfp": 0.0, "albedo_max": 0.7}
+    assert old.stretch.inward() == GAMMA
+    new = sweep_spec("hybrid", "shared", 1, 100, stretch=STRETCH_IN)
+    assert json.loads(new.canonical_json())["stretch"]["gamma_inward"] == GAMMA_IN and new.stretch.inward() == GAMMA_IN
+    assert len({old.spec_hash(), new.spec_hash(), sweep_spec("hybrid", "shared", 1, 100, stretch={**STRETCH, "gamma_inward": 0.0}).spec_hash()}) == 3
+
+
+@pytest.mark.parametrize("arg, want", [("0.8,0,0.3", {"gamma": 0.8, "r_min_mfp": 0.0, "albedo_max": 0.3}),
+                                       ("0.8,0,0.3,0.1", {"gamma": 0.8, "r_min_mfp": 0.0, "albedo_max": 0.3, "gamma_inward": 0.1})])
+def test_table_cost_passes_the_stretch_to_its_sweep(capsys, arg, want):
     import json
 
     from workers.measure.table_cost import main
 
-    assert main(["--albedos", "0.2,0.5", "--photons", "3000", "--stretch", "0.8,0,0.3", "--json"]) == 0
+    assert main(["--albedos", "0.2,0.5", "--photons", "3000", "--stretch", arg, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["stretch"] == {"gamma": 0.8, "r_min_mfp": 0.0, "albedo_max": 0.3}
+    assert out["stretch"] == want
     assert all(math.isfinite(out["cpu_hours"][k]) and out["cpu_hours"][k] > 0 for k in ("all", "major"))
 
 

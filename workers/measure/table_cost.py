@@ -23,7 +23,7 @@ the cost of the table that meets a relative error of ``node_rel`` (1 %) in every
   total Rd (pbrt's rhoEff) each.
 
 ``--path-roulette START,SURVIVAL`` sets the spec's ``path_roulette`` (:mod:`schema.roulette`),
-``--stretch GAMMA,R_MIN,ALBEDO_MAX`` its ``stretch`` (:mod:`schema.stretch`).
+``--stretch GAMMA,R_MIN,ALBEDO_MAX[,GAMMA_INWARD]`` its ``stretch`` (:mod:`schema.stretch`).
 
 A node's relative error is itself estimated from its events; where they are few and
 heavy-tailed (the far nodes, ~9 mean free paths, of albedos below ~0.5: 30-100 events at 2e5
@@ -92,7 +92,7 @@ def measure(spec: SimulationSpec, progress=None) -> tuple[list, list[float]]:
     # Warm-up outside the measurement: compile or load the kernels for this shard size (a cheap
     # low albedo with the same photons per shard, hence the same lane count).
     roulette = None if spec.path_roulette is None else spec.path_roulette.model_dump()
-    stretch = None if spec.stretch is None else spec.stretch.model_dump()
+    stretch = None if spec.stretch is None else spec.stretch.model_dump(exclude_none=True)
     warm = table_spec([0.05], spec.sweep.g[0], spec.sweep.eta[0], spec.photons, spec.estimator, "independent",
                       shards=spec.shards, path_roulette=roulette, stretch=stretch)  # fmt: skip
     list(run_tasks([(warm.medium_spec(0), 0)], threads=1))
@@ -164,7 +164,7 @@ def project(spec: SimulationSpec, results, cpu: list[float], r_min=0.001, r_max=
         "g": spec.sweep.g[0], "eta": spec.sweep.eta[0], "estimator": est, "walks": spec.walk_mode(),
         "photons_per_medium": spec.photons, "media": spec.n_media,
         "path_roulette": None if spec.path_roulette is None else spec.path_roulette.model_dump(),
-        "stretch": None if spec.stretch is None else spec.stretch.model_dump(), "groups": groups, "albedos": needs,
+        "stretch": None if spec.stretch is None else spec.stretch.model_dump(exclude_none=True), "groups": groups, "albedos": needs,
         "cpu_s_measured": sum(cpu), "cpu_hours": total,
         "bound": any(g[w]["node"]["bound"] for g in groups for w in ("all",)),
         "target": {"node_rel": node_rel, "rd_rel": rd_rel, "r_min": r_min, "r_max": r_max, "major_share": 1e-3},
@@ -186,8 +186,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--path-roulette", default=None, metavar="START,SURVIVAL",
                    help="the spec's path_roulette (schema/roulette.py), e.g. 1024,0.5 (default: off)")
-    p.add_argument("--stretch", default=None, metavar="GAMMA,R_MIN,ALBEDO_MAX",
-                   help="the spec's stretch (schema/stretch.py), e.g. 0.8,0,0.3 (default: off)")
+    p.add_argument("--stretch", default=None, metavar="GAMMA,R_MIN,ALBEDO_MAX[,GAMMA_INWARD]",
+                   help="the spec's stretch (schema/stretch.py), e.g. 0.8,0,0.3 or 0.6,0,0.7,0.2 (default: off)")
     p.add_argument("--yardstick", type=float, default=None, help="reference walk steps per CPU-second measured now")
     p.add_argument("--yardstick-ref", type=float, default=YARDSTICK_REF)
     p.add_argument("--json", action="store_true")
@@ -203,8 +203,10 @@ def main(argv=None) -> int:
         roulette = {"start": int(start), "survival": float(survival)}
     stretch = None
     if a.stretch is not None:
-        gamma, r_min, albedo_max = (float(x) for x in a.stretch.split(","))
-        stretch = {"gamma": gamma, "r_min_mfp": r_min, "albedo_max": albedo_max}
+        values = [float(x) for x in a.stretch.split(",")]
+        if len(values) not in (3, 4):
+            p.error(f"--stretch takes GAMMA,R_MIN,ALBEDO_MAX[,GAMMA_INWARD], not {a.stretch!r}")
+        stretch = dict(zip(("gamma", "r_min_mfp", "albedo_max", "gamma_inward"), values))
     spec = table_spec(albedos, a.g, a.eta, a.photons, a.estimator, a.walks, edges, seed=a.seed, path_roulette=roulette,
                       stretch=stretch)  # fmt: skip
     t0 = time.perf_counter()

@@ -159,12 +159,12 @@ class ShardPlan:
         )  # fmt: skip
 
 
-def _stretch(spec: SimulationSpec, cfgs: Configs) -> tuple[float, float, float] | None:
-    """The walk's radial path stretching (gamma, r_min, albedo_max) (workers.walk.stretch), None
+def _stretch(spec: SimulationSpec, cfgs: Configs) -> tuple[float, float, float, float] | None:
+    """The walk's radial path stretching (gamma, r_min, albedo_max, gamma_inward) (workers.walk.stretch), None
     without the spec's ``stretch`` or when no configuration's albedo is below its albedo_max: then
     the compiled step has no stretching code at all (the walks at albedo >= albedo_max of a sweep
     run as fast as without it)."""
     st = spec.stretch
     if st is None or not any(float(a) < st.albedo_max for a in cfgs.albedo):
         return None
-    return (st.gamma, st.r_min_mfp, st.albedo_max)
+    return (st.gamma, st.r_min_mfp, st.albedo_max, st.inward())

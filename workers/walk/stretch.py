@@ -32,6 +32,27 @@ flights spread by at most (1 - gamma^2)^(-n/2) in standard deviation, which roul
 albedo (few flights).  Hence it is kept to albedos below ``albedo_max``, where paths are short and
 the far field is what costs.
 
+**Higher moments, and a separate inward strength.**  A finite variance is not enough for a
+``target`` that stops on estimated errors: the error estimate is itself a sample mean of squared
+weights, and it settles only if the fourth moment is finite.  The k-th moment of a collision's
+ratio under the drawn law is
+
+    int (exp(-gamma mu s) / sigma*)^k sigma* exp(-sigma* s) ds = sigma*^(1-k) / (sigma* + k gamma mu),
+
+finite iff sigma* + k gamma mu = 1 + (k - 1) gamma mu > 0 (the surface factor gives the same
+condition).  Outward (mu >= 0) every moment is finite: the ratio is at most 1 / (1 - gamma).
+Inward (mu < 0) it needs k < 1 + 1 / (gamma |mu|): at gamma 0.6 only k < 2.67 for a flight
+straight inward, so the variance is finite but the variance of its estimate is not, and a far
+bin's error estimate jumps when a rare inward photon lands there with a huge weight (measured: the
+same target stopped at 1.6e8 photons with one seed and ran to a 1e9 cap with another).  Hence
+``gamma_inward``: mu < 0 flights use their own strength gamma_in, sigma* = 1 - gamma_in mu.  With
+gamma_in < 1/3 the fourth moment is finite for every direction (k = 4 needs gamma_in |mu| < 1/3);
+gamma_in = 0 leaves inward flights unstretched (their ratio is 1).  The likelihood ratio is the
+same formula with gamma_in in place of gamma, so unbiasedness is untouched; sigma* and the ratio
+stay continuous at mu = 0.  Roulette's threshold keeps falling as exp(-gamma rho): outward
+stretching, which sets how weights fall with distance, still uses gamma.  Without
+``gamma_inward`` (or with it equal to gamma) the step computes exactly what it did before.
+
 **What it leaves alone.**  The first flight (from the entry point, before any scattering) is never
 stretched: the hybrid's first vertex is recomputed from the unstretched law (workers.walk.hybrid).
 The albedo does not enter the drawn geometry, so a shared walk's members still reweight by
@@ -47,15 +68,20 @@ import torch
 __all__ = ["stretch_factors"]
 
 
-def stretch_factors(x, y, ux, uy, nscat, albedo, running, *, gamma: float, r_min: float, albedo_max: float):
+def stretch_factors(x, y, ux, uy, nscat, albedo, running, *, gamma: float, r_min: float, albedo_max: float,
+                    gamma_inward: float | None = None):
     """(sigma_star, gamma_mu) per lane for the flight starting at (x, y) along u: sigma* = 1 -
     gamma mu on stretched flights (started at rho >= r_min after a scattering, albedo < albedo_max),
-    1 elsewhere; gamma_mu = gamma mu there, 0 elsewhere.  The weight ratio is then
-    exp(-gamma_mu s) / sigma* at a collision after s and exp(-gamma_mu t) at the surface."""
+    1 elsewhere; gamma_mu = gamma mu there (gamma_inward mu where mu < 0, when it is given and
+    differs from gamma), 0 elsewhere.  The weight ratio is then exp(-gamma_mu s) / sigma* at a
+    collision after s and exp(-gamma_mu t) at the surface."""
     rho2 = x * x + y * y
     on = running & (nscat >= 1) & (rho2 >= r_min * r_min) & (albedo < albedo_max)
     # On the axis (the first vertex at normal incidence) every horizontal direction is outward.
     axis = rho2 < 1e-12
     mu = torch.where(axis, torch.sqrt(ux * ux + uy * uy), (ux * x + uy * y) / torch.sqrt(torch.where(axis, 1.0, rho2)))
-    gamma_mu = torch.where(on, gamma * mu, 0.0)
+    if gamma_inward is None or gamma_inward == gamma:  # one strength: the expression of old, bit for bit
+        gamma_mu = torch.where(on, gamma * mu, 0.0)
+    else:
+        gamma_mu = torch.where(on, torch.where(mu < 0.0, gamma_inward * mu, gamma * mu), 0.0)
     return 1.0 - gamma_mu, gamma_mu

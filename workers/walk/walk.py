@@ -56,7 +56,7 @@ class WalkParams:
     survival: float = 0.1
     hg_branch: str = "mixed"  # "large" / "small": every |g| >= 0.1 / < 0.1 (see sample_hg)
     phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
-    stretch: tuple[float, float, float] | None = None  # radial path stretching (gamma, r_min, albedo_max): workers.walk.stretch
+    stretch: tuple[float, float, float, float] | None = None  # radial path stretching (gamma, r_min, albedo_max, gamma_inward): workers.walk.stretch
 
 
 @dataclass
@@ -171,8 +171,9 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
     (b0, b1, b2, b3), (r0, r1, r2, r3) = stream_draws((lanes.r0, lanes.r1, lanes.r2, lanes.r3))
     s = sample_exponential(uniform_open(b0))
     if p.stretch is not None:  # workers.walk.stretch: the free path drawn from sigma* exp(-sigma* s)
-        gamma, r_min, albedo_max = p.stretch
-        sig, gamma_mu = stretch_factors(x, y, ux, uy, lanes.nscat, albedo, running, gamma=gamma, r_min=r_min, albedo_max=albedo_max)
+        gamma, r_min, albedo_max, gamma_in = p.stretch
+        sig, gamma_mu = stretch_factors(x, y, ux, uy, lanes.nscat, albedo, running, gamma=gamma, r_min=r_min, albedo_max=albedo_max,
+                                        gamma_inward=gamma_in)  # fmt: skip
         s = s / sig
     u_dec = uniform_halfopen(b1)
     z_new = z + s * uz
