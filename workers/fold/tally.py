@@ -121,8 +121,9 @@ class PhotonAccumulator:
         exit of zero weight (albedo 0: a weight of 0 can survive roulette) is no event, as in
         :meth:`add_photons`: a bin it alone reached stays unresolved (0, NaN error), not 0 +- 0."""
         acc = self.linear[estimator]
-        for row, w in enumerate((g, g * g, s, s * s, (g != 0.0).astype(np.float64))):
+        for row, w in enumerate((g, g * g, s, s * s)):
             acc[row] += np.bincount(flat, weights=w, minlength=acc.shape[1])
+        acc[4] += np.bincount(flat[g != 0.0], minlength=acc.shape[1])  # events: an integer count, exact in float64
 
     def add_photons(self, estimator: str, flat2: np.ndarray, g: np.ndarray, s: np.ndarray, square_key: np.ndarray, square_weight: np.ndarray) -> None:
         """Entries of several per photon (workers.walk.hybrid.photon_entries): flat2 [cfg, comp (0/1),
@@ -140,10 +141,19 @@ class PhotonAccumulator:
             self.squares[estimator] = sq
 
     def add_walk(self, cfg: np.ndarray, absorbed: np.ndarray, truncated: np.ndarray) -> None:
-        """Absorbed and truncated weight of finished photons of configuration cfg (one each)."""
+        """Absorbed and truncated weight of finished photons of configuration cfg (one each).
+
+        Sums are sequential bincounts (the same bits on every machine); a quantity that is zero
+        for every photon (truncated, nearly always) adds nothing and is skipped, and events are
+        integer counts: both leave the sums bit for bit as the weighted bincounts would."""
         for q, v in (("absorbed", absorbed), ("truncated", truncated)):
-            for row, w in enumerate((v, v * v, (v != 0.0).astype(np.float64))):
-                self.walk[q][row] += np.bincount(cfg, weights=w, minlength=self.n_cfg)
+            nonzero = v != 0.0
+            if not nonzero.any():
+                continue
+            acc = self.walk[q]
+            acc[0] += np.bincount(cfg, weights=v, minlength=self.n_cfg)
+            acc[1] += np.bincount(cfg, weights=v * v, minlength=self.n_cfg)
+            acc[2] += np.bincount(cfg[nonzero], minlength=self.n_cfg)
 
     def finish(self, n_photons: int) -> tuple[dict, dict]:
         """(stats, counts) with the histogram shapes of QUANTITIES and the photon units."""

@@ -161,12 +161,13 @@ class _Runner:
     def harvest(self, running: int) -> int:
         """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
         st = self.lanes.status[: self.active * self.chunk]
-        done = (st != RUNNING) & (st != EMPTY)
+        launching = self.next_launch < self.plan.n_launch
+        done = (st != RUNNING) & (st != EMPTY) if "hybrid" in self.plan.estimators or not launching else None
         if "hybrid" in self.plan.estimators:
             self.tally_hybrid(torch.nonzero(done).squeeze(1))
         # While photons are left to launch every lane not running is refilled (there are no EMPTY
         # lanes then but at the start); afterwards only the finished ones are recorded.
-        free = st != RUNNING if self.next_launch < self.plan.n_launch else done
+        free = st != RUNNING if launching else done
         finished, launched = self.finish_and_refill(torch.nonzero(free).squeeze(1))
         if self.acc.ready:
             self.flush_vertices(force=True)  # a batch folds only after all its vertices are tallied
