@@ -2,7 +2,8 @@
 
 - a round touches exactly the running photons at step start * 2^k, survives with probability s
   (binomial bound), divides survivors' weights by s, ends the others (weight 0, absorbed), and
-  depends on the photon, not on its lane;
+  depends on the photon, not on its lane; the step function plays it after its last step
+  exactly as the eager round does;
 - a shared walk with aggressive roulette (start 16, survival 0.5, leader at albedo 0.99) agrees
   with independent walks without it in every radial bin with >= 30 events, Rd and absorbed
   power (two seeds, z with unit spread), for the exit tally and the hybrid;
@@ -19,6 +20,7 @@ The statistical tests are marked slow: the two walk pairs take ~15 s each and th
 from __future__ import annotations
 
 import math
+from dataclasses import fields, replace
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -30,7 +32,7 @@ from tests.support.tables import bitwise_equal
 from tests.workers.test_shared_walks import TOTAL, assert_optional_field, assert_refused, assert_rows_agree, sweep_results, sweep_spec
 from workers.walk.path_roulette import check_steps_per_call, roulette_round
 from workers.run.simulate import simulate_sweep
-from workers.walk.walk import ABSORBED, EXITED, RUNNING, Lanes
+from workers.walk.walk import ABSORBED, EXITED, RUNNING, Lanes, WalkParams, step_function
 
 ROULETTE = {"start": 16, "survival": 0.5}
 ROULETTE_ALBEDO_1 = {"start": 16, "survival": 0.75}
@@ -81,6 +83,24 @@ def test_survival_fraction_weights_and_lane_independence():
     again = lanes_at(np.full(n, 128), np.full(n, RUNNING), np.arange(n))
     roulette_round(again, 16, s)
     assert not np.array_equal(again.status.numpy(), lanes.status.numpy())
+
+
+def test_the_step_function_plays_the_round_after_its_last_step():
+    """The walk plays the round inside its (compiled) step function: the same lanes as stepping
+    without it and then playing :func:`roulette_round`, to the bit, with some lanes due."""
+    n = 4096
+    lanes = lanes_at(np.full(n, 8), np.full(n, RUNNING), np.arange(n))  # step 8 + 8 steps = 16: due
+    lanes.step[: n // 4] = 0  # a quarter reaches step 8 only: not due
+    lanes.z[:], lanes.uz[:], lanes.albedo[:] = -3.0, -1.0, 0.999
+    lanes.start_streams()
+    base = WalkParams(inv_eta=1.0 / 1.33, analog=False, max_scatter=1 << 20)
+    plain, fused = lanes.view(0, n), Lanes(*(t.clone() for t in lanes.tensors()))
+    step_function(base, 8, False, False)(plain)
+    ended = roulette_round(plain, 16, 0.5)
+    step_function(replace(base, roulette=(16, 0.5)), 8, False, False)(fused)
+    assert ended > 0 and (plain.status.numpy() == RUNNING).sum() > 0
+    for name, a, b in zip((f.name for f in fields(Lanes)), plain.tensors(), fused.tensors()):
+        assert torch.equal(a, b), name
 
 
 def test_start_must_be_a_multiple_of_the_steps_per_call():

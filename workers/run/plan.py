@@ -125,7 +125,7 @@ class ShardPlan:
         params = WalkParams(
             inv_eta=1.0 / cfgs.eta, analog=spec.absorption == "analog", max_scatter=spec.max_scatter,
             hg_branch="large" if (abs_g >= 0.1).all() else "small" if (abs_g < 0.1).all() else "mixed", phase=phase_of(spec),
-            stretch=_stretch(spec, cfgs),
+            stretch=_stretch(spec, cfgs), roulette=None if spec.path_roulette is None else (spec.path_roulette.start, spec.path_roulette.survival),
         )  # fmt: skip
         sigma_t = torch.tensor(cfgs.sigma_t, dtype=torch.float64)
         radial_mm = torch.from_numpy(layout.radial_mm[[cfgs.channel_of(c) for c in range(cfgs.n)]])  # [cfg, n_r + 1]

@@ -24,7 +24,7 @@ from workers.walk.connections import Vertices, VertexBuffer, connection_function
 from workers.walk.engine import init_engine
 from workers.walk.harvest import harvest_function
 from workers.walk.hybrid import entries_function
-from workers.walk.path_roulette import check_steps_per_call, roulette_round
+from workers.walk.path_roulette import check_steps_per_call
 from workers.fold.reweight import MemberTallies, member_prefix
 from .plan import EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
 from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
@@ -263,9 +263,8 @@ class _Runner:
         # Harvesting costs a pass over the lanes plus Python work: wait until an eighth of the
         # lanes has finished (or none runs) so the cost is spread over many photons.
         harvest_at = max(1, plan.n_lanes // HARVEST_DIVISOR)
-        roulette = plan.spec.path_roulette  # workers.walk.path_roulette: rounds between calls of n_steps steps
-        if roulette is not None:
-            check_steps_per_call(roulette.start, plan.n_steps)
+        if plan.params.roulette is not None:  # workers.walk.path_roulette: played by the step function after its last step
+            check_steps_per_call(plan.params.roulette[0], plan.n_steps)
         while running > 0:
             running = finished = 0
             for k in range(self.active):
@@ -273,9 +272,6 @@ class _Runner:
                 running, finished = running + int(counts[0]), finished + int(counts[1])
                 if plan.connect:
                     self.collect_vertices(vertex, k * self.chunk)
-                if roulette is not None:  # after the vertices of the call were taken: they precede the round
-                    ended = roulette_round(self.chunks[k], roulette.start, roulette.survival)
-                    running, finished = running - ended, finished + ended
             self.count.steps += plan.n_steps
             if finished >= harvest_at or (running == 0 and finished > 0) or (finished and self.shrinkable(running)):
                 running = self.harvest(running)

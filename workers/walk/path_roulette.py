@@ -27,21 +27,27 @@ carry the missing mean), and error bars from few photons understate.  At smaller
 absorption ends the long paths anyway.  Whether a setting pays is measured per node
 (``python -m workers.measure.table_cost --path-roulette``, BENCHMARKS.md).
 
-**Determinism.**  A round happens at an exact step count of the photon, which the shard runner
-sees because every lane is stepped EXIT_STEPS_PER_CALL (a power of two <= start) steps per call
-from its launch: the outcome depends on the photon's index, its configuration's key and its step
-count, never on its lane, the lane count or the threads.
+**Determinism.**  A round happens at an exact step count of the photon: every lane is stepped
+EXIT_STEPS_PER_CALL (a power of two <= start) steps per call from its launch, and the compiled
+step plays the round of the call's due lanes after its last step (:func:`round_outcome`, traced
+into :func:`workers.walk.walk.step_function`; the vertices of that step are taken first, so they
+precede the round).  The outcome depends on the photon's index, its configuration's key and its
+step count, never on its lane, the lane count or the threads.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import torch
 
 from .conventions import PURPOSE_ROULETTE
 from .rng import philox4x32, uniform_halfopen
-from .walk import ABSORBED, RUNNING, Lanes
 
-__all__ = ["check_steps_per_call", "roulette_round"]
+if TYPE_CHECKING:
+    from .walk import Lanes
+
+__all__ = ["check_steps_per_call", "round_outcome", "roulette_round"]
 
 
 def check_steps_per_call(start: int, n_steps: int) -> None:
@@ -50,17 +56,24 @@ def check_steps_per_call(start: int, n_steps: int) -> None:
         raise ValueError(f"path_roulette.start {start} must be a multiple of the walk's steps per call {n_steps}")
 
 
+def round_outcome(running: torch.Tensor, step: torch.Tensor, c_lo: torch.Tensor, c_hi: torch.Tensor, k0: torch.Tensor,
+                  k1: torch.Tensor, start: int, survival: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(due, live) per lane, elementwise: due = a running lane whose step count is start * 2^k
+    (k >= 0, start a power of two), live = its round's uniform (Philox counter (photon, step,
+    PURPOSE_ROULETTE)) is below survival.  No indexing, so it fuses into the compiled step; a due
+    lane survives with weight w / survival where live and ends (weight 0, ABSORBED) where not."""
+    due = running & (step >= start) & ((step & (step - 1)) == 0)
+    u = uniform_halfopen(philox4x32(c_lo, c_hi, step, torch.full_like(step, PURPOSE_ROULETTE), k0, k1)[0])
+    return due, u < survival
+
+
 def roulette_round(lanes: Lanes, start: int, survival: float) -> int:
-    """Play the round of every RUNNING lane whose step count is start * 2^k (k >= 0), in place;
-    returns the number of photons it ended."""
-    step = lanes.step
-    due = (lanes.status == RUNNING) & (step >= start) & ((step & (step - 1)) == 0)
-    idx = torch.nonzero(due).squeeze(1)
-    if len(idx) == 0:
-        return 0
-    purpose = torch.full_like(step[idx], PURPOSE_ROULETTE)
-    u = uniform_halfopen(philox4x32(lanes.c_lo[idx], lanes.c_hi[idx], step[idx], purpose, lanes.k0[idx], lanes.k1[idx])[0])
-    live = u < survival
-    lanes.w[idx] = torch.where(live, lanes.w[idx] * (1.0 / survival), 0.0)
-    lanes.status[idx] = torch.where(live, lanes.status[idx], ABSORBED)
-    return int((~live).sum())
+    """Play the round of every RUNNING lane whose step count is start * 2^k (k >= 0), in place
+    (eagerly: the walk plays it inside its compiled step); returns the number of photons it ended."""
+    from .walk import ABSORBED, RUNNING  # the walk imports this module
+
+    due, live = round_outcome(lanes.status == RUNNING, lanes.step, lanes.c_lo, lanes.c_hi, lanes.k0, lanes.k1, start, survival)
+    ended = due & ~live
+    lanes.w.copy_(torch.where(due, torch.where(live, lanes.w * (1.0 / survival), 0.0), lanes.w))
+    lanes.status.copy_(torch.where(ended, ABSORBED, lanes.status))
+    return int(ended.sum())

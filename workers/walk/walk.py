@@ -25,6 +25,7 @@ from .conventions import PURPOSE_WALK
 from .kernels import compile_kernel
 from .optics import fresnel_dielectric, sample_exponential, scatter_direction
 from .phase import DEFAULT_PHASE, phase_function
+from .path_roulette import round_outcome
 from .rng import photon_words, stream_draws, stream_start, uniform_halfopen, uniform_open
 from .stretch import stretch_factors
 
@@ -57,6 +58,7 @@ class WalkParams:
     hg_branch: str = "mixed"  # "large" / "small": every |g| >= 0.1 / < 0.1 (see sample_hg)
     phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
     stretch: tuple[float, float, float, float] | None = None  # radial path stretching (gamma, r_min, albedo_max, gamma_inward): workers.walk.stretch
+    roulette: tuple[int, float] | None = None  # path-length roulette (start, survival) after each call's last step: workers.walk.path_roulette
 
 
 @dataclass
@@ -231,7 +233,8 @@ def walk_step(lanes: Lanes, *, p: WalkParams) -> tuple[Lanes, tuple[torch.Tensor
 
 
 def _step_inplace(lanes: Lanes, p: WalkParams, n_steps: int, want_vertices: bool):
-    """Run n_steps steps writing the state back into `lanes` in place.
+    """Run n_steps steps writing the state back into `lanes` in place (with ``p.roulette``, then
+    the path-length round of the lanes due: workers.walk.path_roulette).
 
     Returns (counts, vertex): counts = int64 [running, finished] lanes after the steps (finished =
     EXITED, ABSORBED or TRUNCATED, waiting for harvest); vertex = the last step's vertex data
@@ -245,6 +248,11 @@ def _step_inplace(lanes: Lanes, p: WalkParams, n_steps: int, want_vertices: bool
     if want_vertices:
         # The arrival direction and weight are the old state, overwritten just below: copy them.
         vertex = tuple(v.clone() for v in vertex)
+    if p.roulette is not None:  # the path-length round of the lanes due, after the vertices of the last step
+        start, survival = p.roulette
+        due, live = round_outcome(cur.status == RUNNING, cur.step, cur.c_lo, cur.c_hi, cur.k0, cur.k1, start, survival)
+        w_round = torch.where(due, torch.where(live, cur.w * (1.0 / survival), 0.0), cur.w)
+        cur = replace(cur, w=w_round, status=torch.where(due & ~live, ABSORBED, cur.status))
     lanes.copy_from(cur, STEP_FIELDS)
     new_status = cur.status
     counts = torch.stack(((new_status == RUNNING).sum(), ((new_status != RUNNING) & (new_status != EMPTY)).sum()))
