@@ -158,6 +158,21 @@ def test_calls_with_a_seen_signature_skip_the_guards(tmp_path, monkeypatch):
     assert float(k([x, y], 3.0)) == float((x * 1.5 + y * 3.0).sum())
 
 
+def test_a_remembered_dataclass_signature_follows_its_fields():
+    """A dataclass's signature is remembered while its fields hold the same objects; a field
+    given another tensor or value is seen at once (the signature a fresh object would get)."""
+    x, y = torch.zeros(16), torch.ones(16)
+    pair = _Pair(x, y)
+    first = kernels._signature(pair)
+    assert kernels._signature(pair) is first, "remembered: the same fields give the same signature object"
+    pair.b = torch.ones(16, dtype=torch.float64)
+    assert kernels._signature(pair) == kernels._signature(_Pair(x, pair.b)) != first
+    consts = _Consts(1.5)
+    assert kernels._signature(consts) != kernels._signature(_Consts(2.5))
+    object.__setattr__(consts, "scale", 2.5)
+    assert kernels._signature(consts) == kernels._signature(_Consts(2.5))
+
+
 def test_cache_can_be_switched_off(monkeypatch):
     monkeypatch.setenv("BSSRDF_KERNEL_CACHE", "off")
     assert kernels.cache_dir() is None

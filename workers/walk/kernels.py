@@ -39,6 +39,7 @@ import contextlib
 import dataclasses
 import hashlib
 import logging
+import operator
 import os
 import sys
 import threading
@@ -161,29 +162,54 @@ _MAX_REMEMBERED = 64  # dataclass signatures kept (a shard passes the same few l
 _remembered: dict[int, tuple[weakref.ref, tuple, Any]] = {}  # id -> (object, its fields, signature), weakly
 
 
-def _weak(x: Any) -> Any:
-    return weakref.ref(x) if isinstance(x, torch.Tensor) else x
+class _Held:
+    """A non-tensor field value remembered as it is, called like a weak reference."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value: Any):
+        self.value = value
+
+    def __call__(self) -> Any:
+        return self.value
 
 
-def _strong(x: Any) -> Any:
-    return x() if isinstance(x, weakref.ref) else x
+def _ref(x: Any) -> Callable[[], Any]:
+    return weakref.ref(x) if isinstance(x, torch.Tensor) else _Held(x)
+
+
+_getters: dict[type, Callable[[Any], tuple]] = {}  # dataclass type -> its field values as a tuple
+
+
+def _field_values(v: Any) -> tuple:
+    """The values of v's dataclass fields, in declaration order (one C-level attrgetter per type)."""
+    get = _getters.get(type(v))
+    if get is None:
+        names = tuple(f.name for f in dataclasses.fields(v))
+        if len(names) > 1:
+            get = operator.attrgetter(*names)
+        else:
+            get = lambda x, names=names: tuple(getattr(x, n) for n in names)  # noqa: E731
+        _getters[type(v)] = get
+    return get(v)
 
 
 def _dataclass_signature(v: Any) -> Any:
     """_signature of a dataclass, remembered for the object as long as every field still holds
     the same objects (checked by identity on each call; a tensor's dtype, shape and strides do
     not change in place here, where lanes are only written with copy_ and indexing).  The walk
-    passes the same lane chunks and tables on every call; walking their ~20 fields cost ~5 % of a
-    short walk's shard.  Held by weak references: remembering keeps nothing alive."""
-    values = tuple(getattr(v, f.name) for f in dataclasses.fields(v))
+    passes the same lane chunks and tables on every call; walking their ~20 fields in Python cost
+    ~5 % of a short walk's shard, so the check runs in C (attrgetter, map over the references).
+    Held by weak references: remembering keeps nothing alive."""
+    values = _field_values(v)
     hit = _remembered.get(id(v))
-    if hit is not None and hit[0]() is v and len(hit[1]) == len(values) and all(_strong(a) is b for a, b in zip(hit[1], values)):
+    if hit is not None and hit[0]() is v and len(hit[1]) == len(values) and all(map(operator.is_, map(operator.call, hit[1]), values)):
         return hit[2]
     sig = (type(v), tuple(map(_signature, values)))
     if len(_remembered) >= _MAX_REMEMBERED:
         _remembered.clear()
     try:
-        _remembered[id(v)] = (weakref.ref(v), tuple(map(_weak, values)), sig)
+        _remembered[id(v)] = (weakref.ref(v), tuple(map(_ref, values)), sig)
     except TypeError:  # a dataclass with __slots__ and no __weakref__: not remembered
         pass
     return sig
