@@ -56,15 +56,17 @@ def check_steps_per_call(start: int, n_steps: int) -> None:
         raise ValueError(f"path_roulette.start {start} must be a multiple of the walk's steps per call {n_steps}")
 
 
-def round_outcome(running: torch.Tensor, step: torch.Tensor, c_lo: torch.Tensor, c_hi: torch.Tensor, k0: torch.Tensor,
-                  k1: torch.Tensor, start: int, survival: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(due, live) per lane, elementwise: due = a running lane whose step count is start * 2^k
-    (k >= 0, start a power of two), live = its round's uniform (Philox counter (photon, step,
-    PURPOSE_ROULETTE)) is below survival.  No indexing, so it fuses into the compiled step; a due
-    lane survives with weight w / survival where live and ends (weight 0, ABSORBED) where not."""
+def round_outcome(running: torch.Tensor, step: torch.Tensor, w: torch.Tensor, c_lo: torch.Tensor, c_hi: torch.Tensor,
+                  k0: torch.Tensor, k1: torch.Tensor, start: int, survival: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(weight after the round, ended) per lane, elementwise: a running lane whose step count is
+    start * 2^k (k >= 0, start a power of two) is due; it survives where its round's uniform
+    (Philox counter (photon, step, PURPOSE_ROULETTE)) is below survival, its weight divided by
+    survival, and ends (weight 0; the caller marks it ABSORBED) where not.  No indexing, so it
+    fuses into the compiled step."""
     due = running & (step >= start) & ((step & (step - 1)) == 0)
     u = uniform_halfopen(philox4x32(c_lo, c_hi, step, torch.full_like(step, PURPOSE_ROULETTE), k0, k1)[0])
-    return due, u < survival
+    live = u < survival
+    return torch.where(due, torch.where(live, w * (1.0 / survival), 0.0), w), due & ~live
 
 
 def roulette_round(lanes: Lanes, start: int, survival: float) -> int:
@@ -72,8 +74,7 @@ def roulette_round(lanes: Lanes, start: int, survival: float) -> int:
     (eagerly: the walk plays it inside its compiled step); returns the number of photons it ended."""
     from .walk import ABSORBED, RUNNING  # the walk imports this module
 
-    due, live = round_outcome(lanes.status == RUNNING, lanes.step, lanes.c_lo, lanes.c_hi, lanes.k0, lanes.k1, start, survival)
-    ended = due & ~live
-    lanes.w.copy_(torch.where(due, torch.where(live, lanes.w * (1.0 / survival), 0.0), lanes.w))
+    w, ended = round_outcome(lanes.status == RUNNING, lanes.step, lanes.w, lanes.c_lo, lanes.c_hi, lanes.k0, lanes.k1, start, survival)
+    lanes.w.copy_(w)
     lanes.status.copy_(torch.where(ended, ABSORBED, lanes.status))
     return int(ended.sum())

@@ -250,9 +250,8 @@ def _step_inplace(lanes: Lanes, p: WalkParams, n_steps: int, want_vertices: bool
         vertex = tuple(v.clone() for v in vertex)
     if p.roulette is not None:  # the path-length round of the lanes due, after the vertices of the last step
         start, survival = p.roulette
-        due, live = round_outcome(cur.status == RUNNING, cur.step, cur.c_lo, cur.c_hi, cur.k0, cur.k1, start, survival)
-        w_round = torch.where(due, torch.where(live, cur.w * (1.0 / survival), 0.0), cur.w)
-        cur = replace(cur, w=w_round, status=torch.where(due & ~live, ABSORBED, cur.status))
+        w_round, ended = round_outcome(cur.status == RUNNING, cur.step, cur.w, cur.c_lo, cur.c_hi, cur.k0, cur.k1, start, survival)
+        cur = replace(cur, w=w_round, status=torch.where(ended, ABSORBED, cur.status))
     lanes.copy_from(cur, STEP_FIELDS)
     new_status = cur.status
     counts = torch.stack(((new_status == RUNNING).sum(), ((new_status != RUNNING) & (new_status != EMPTY)).sum()))
