@@ -92,6 +92,17 @@ class MemberTallies:
             raise ValueError(f"member albedos {list(albedos)} must not exceed the walked albedo {leader}")
         self.w0 = np.asarray(w0, dtype=np.float64)
         self.accs = [PhotonAccumulator(list(estimators), n_cfg, hist_shape) for _ in albedos]
+        # Every member's accumulators are rows of one array, so a block adds to all members in one
+        # operation (a group has up to a hundred members; a loop over them cost ~0.5 ms a block).
+        self.linear = {e: np.zeros((len(albedos), *self.accs[0].linear[e].shape)) for e in estimators}
+        for e, stacked in self.linear.items():
+            for acc, row in zip(self.accs, stacked):
+                acc.linear[e] = row
+        self.squares: dict[str, np.ndarray] = {}  # estimator -> [members, n_sq], rows shared with accs (once added)
+        self.walk = {q: np.zeros((len(albedos), *a.shape)) for q, a in self.accs[0].walk.items()}
+        for q, stacked in self.walk.items():
+            for acc, row in zip(self.accs, stacked):
+                acc.walk[q] = row
 
     def __len__(self) -> int:
         return len(self.accs)
@@ -120,8 +131,7 @@ class MemberTallies:
         """Add to row ``row`` of every member's linear accumulator the sum of bincounts of
         (flat index [n], weights [J, n]) parts: one bincount over all members per part (member
         j's entries offset by j * size), summed per member in the order of its entries."""
-        for acc, t in zip(self.accs, self._bincounts(parts, size)):
-            acc.linear[estimator][row] += t
+        self.linear[estimator][:, row] += self._bincounts(parts, size)
 
     def add_exits(self, flat: np.ndarray, g: np.ndarray, s: np.ndarray, nscat: np.ndarray) -> None:
         """The exit tally's entries of one block, each member's weighted by ratio ** nscat."""
@@ -142,6 +152,8 @@ class MemberTallies:
         leader's entries among first-vertex samples (ss), between them and the exit (se) and of
         the exit (ee): formed once per block, combined per member.
         """
+        if len(nscat) == 0:
+            return
         value = np.stack([g, s, g, g, g, s, g, g])  # [8, P, E]
         e = value.shape[-1]
         single, ex = value[..., :-1], value[..., -1]
@@ -152,60 +164,110 @@ class MemberTallies:
             cross_ss[..., j] = np.sum(np.where(same, single[..., j + 1 :], 0.0), axis=-1)
         q_ss = (single * (single + 2.0 * cross_ss)).reshape(-1)
         q_se = (np.sum(np.where(same_ex, single, 0.0), axis=-1) * ex).reshape(-1)  # sum_j x_j x_exit over shared keys
-        q_ee = (ex * ex).reshape(-1)
         r = self.ratios[:, None]
-        f = member_factors(self.ratios, nscat)  # [J, P]
         flat_single, flat_ex = flat2[:, :-1].reshape(-1), flat2[:, -1]
         g_single, s_single = g[:, :-1].reshape(-1), s[:, :-1].reshape(-1)
-        ge, se = g[None, :, -1] * f, s[None, :, -1] * f
         size = self.accs[0].linear["hybrid"].shape[1]
+        n_sq = int(self.accs[0].layout.square_offsets[-1])
+        key_s, key_e = key[..., :-1].reshape(-1), key[..., -1]  # key_e [8, P]: the exit's keys
         # Every member scales the first-vertex entries by the same r_j: their sums per bin (and
         # their squares per key) are the leader's, times r_j (r_j^2), formed once per block;
         # only the exit's factor r_j^n differs per photon.  A member's events are the leader's
         # entries != 0 where r_j > 0.
         live = (self.ratios > 0.0).astype(np.float64)[:, None]
         single = [np.bincount(flat_single, weights=w, minlength=size) for w in (g_single, s_single, (g_single != 0.0).astype(np.float64))]
-        at_ex = self._offsets(flat_ex, size)
-        exits = [self._sums(at_ex, ge, size), self._sums(at_ex, se, size), self._sums(at_ex[(ge != 0.0).ravel()], None, size)]
-        for row, lead, scale, ex_j in ((0, single[0], r, exits[0]), (2, single[1], r, exits[1]), (4, single[2], live, exits[2])):
-            for acc, sc, t in zip(self.accs, scale[:, 0], ex_j):
-                acc.linear["hybrid"][row] += sc * lead + t
-        n_sq = int(self.accs[0].layout.square_offsets[-1])
-        key_s, key_e = key[..., :-1].reshape(-1), key[..., -1].reshape(-1)
         sq_single = np.bincount(key_s, weights=q_ss, minlength=n_sq)
-        # Member j's exit squares: q_se 2 r_j f + q_ee f^2 for every (key set, photon), f its factor
-        # r_j^n of the photon; one member at a time keeps the [8, P] temporaries in cache.
-        q_se8, q_ee8 = q_se.reshape(-1, len(nscat)), q_ee.reshape(-1, len(nscat))
-        two_rf, ff = (2.0 * r) * f, f * f
-        w_se, w_ee = np.empty_like(q_se8), np.empty_like(q_ee8)
-        for j, (acc, r2) in enumerate(zip(self.accs, r[:, 0] * r[:, 0])):
-            np.multiply(q_se8, two_rf[j], out=w_se)
-            np.add(w_se, np.multiply(q_ee8, ff[j], out=w_ee), out=w_se)
-            t = np.bincount(key_e, weights=w_se.ravel(), minlength=n_sq)
-            sq = r2 * sq_single + t
-            if "hybrid" in acc.squares:
-                acc.squares["hybrid"] += sq
-            else:
-                acc.squares["hybrid"] = sq
+        # The exit's terms differ per member and photon (r_j^n): photons are grouped by where
+        # they left (the exit bin and its eight square keys), and every member's sums are formed
+        # per group in one pass over [members, photons] arrays in group order (_Groups).
+        grp = _Groups(np.concatenate((flat_ex[None, :], key_e)), max(size, n_sq))
+        o = grp.order
+        f = member_factors(self.ratios, nscat[o])  # [J, P], photons in group order
+        ge, se = g[o, -1][None, :] * f, s[o, -1][None, :] * f
+        at = self._offsets(grp.labels[0], size)
+        exits = [self._sums(at, grp.sums(w), size) for w in (ge, se, (ge != 0.0).astype(np.float64))]
+        for row, lead, scale, ex_j in ((0, single[0], r, exits[0]), (2, single[1], r, exits[1]), (4, single[2], live, exits[2])):
+            self.linear["hybrid"][:, row] += scale * lead[None, :] + ex_j
+        exit_sq = self._exit_squares(grp, ge, se, f, q_se.reshape(key_e.shape)[:, o], n_sq)
+        if "hybrid" not in self.squares:
+            self.squares["hybrid"] = np.zeros((len(self.accs), n_sq))
+            for acc, row in zip(self.accs, self.squares["hybrid"]):
+                acc.squares["hybrid"] = row
+        self.squares["hybrid"] += (r * r) * sq_single[None, :] + exit_sq
+
+    def _exit_squares(self, grp: "_Groups", ge: np.ndarray, se: np.ndarray, f: np.ndarray, q_se: np.ndarray, n_sq: int) -> np.ndarray:
+        """[members, n_sq]: member j's exit terms of the per-photon squares, summed per key:
+        f_jp^2 ex[k, p]^2 + 2 r_j f_jp q_se[k, p] over key sets k and photons p, at the exit's key
+        of set k (:meth:`add_hybrid`; ex is G in the sets 0, 2, 3, 4, 6, 7 and S in 1 and 5).
+        Photons in group order (``grp``): ge = f G and se = f S of the exits [J, P], q_se [8, P].
+
+        - f^2 ex^2: per member the sums of ge^2 and se^2 over each group, each going to the
+          group's eight keys (two passes over the block, not eight);
+        - 2 r f q_se: nonzero only where a first-vertex sample shares a key with the exit (never
+          in the component sets 0-3, whose keys hold the component): summed over those entries.
+        The sums over keys are ordered bincounts over all members at once (member j's entries
+        offset by j * n_sq): the same bits on every machine."""
+        by_group = {"g": grp.sums(ge * ge), "s": grp.sums(se * se)}  # [J, U]
+        sets = ("g", "s", "g", "g", "g", "s", "g", "g")
+        keys = grp.labels[1:]  # [8, U]
+        ee_at = np.concatenate([self._offsets(keys[k], n_sq) for k in range(len(sets))])
+        ee_w = np.concatenate([by_group[v].ravel() for v in sets])  # set-major, then member, then group: as ee_at
+        total = np.bincount(ee_at, weights=ee_w, minlength=len(self.accs) * n_sq)
+        nz = np.flatnonzero(q_se)  # (set, photon) entries, set-major
+        if nz.size:
+            n_p = q_se.shape[1]
+            by_key = _Groups(keys[nz // n_p, grp.group_of[nz % n_p]][None, :], n_sq)  # the entries grouped by key
+            nz = nz[by_key.order]
+            t = by_key.sums(f[:, nz % n_p] * q_se.reshape(-1)[nz][None, :])  # [J, keys reached]
+            total.reshape(len(self.accs), n_sq)[:, by_key.labels[0]] += (2.0 * self.ratios)[:, None] * t
+        return total.reshape(len(self.accs), n_sq)
 
     def add_walk(self, cfg: np.ndarray, status_exit: np.ndarray, status_trunc: np.ndarray, w: np.ndarray, nscat: np.ndarray) -> None:
         """Walk totals of finished photons: truncated weight w r^n of truncated photons, and the
         absorbed power as the balance w_0 - r^n w (exited or truncated) (module docstring).
-        Sums are the bincounts over all members; the truncated weight, zero for nearly every
-        block, is skipped where no photon was truncated (adding zeros changes no sum)."""
-        f = member_factors(self.ratios, nscat)  # [J, P]
-        w = np.asarray(w, dtype=np.float64)
-        left = np.where(status_exit | status_trunc, w, 0.0)
-        n_cfg = self.accs[0].n_cfg
-        at = self._offsets(cfg, n_cfg)
-        totals = [("absorbed", self.w0[cfg][None, :] - left[None, :] * f)]
+        Sums per configuration over the photons in configuration order (_Groups), all members at
+        once; the truncated weight, zero for nearly every block, is skipped where no photon was
+        truncated (adding zeros changes no sum)."""
+        if len(cfg) == 0:
+            return
+        grp = _Groups(np.asarray(cfg)[None, :], self.accs[0].n_cfg)
+        o, at = grp.order, grp.labels[0]
+        f = member_factors(self.ratios, nscat[o])  # [J, P], photons in configuration order
+        w = np.asarray(w, dtype=np.float64)[o]
+        left = np.where((status_exit | status_trunc)[o], w, 0.0)
+        totals = [("absorbed", self.w0[cfg[o]][None, :] - left[None, :] * f)]
         if np.any(status_trunc):
-            totals.append(("truncated", np.where(status_trunc, w, 0.0)[None, :] * f))
-        for q, v in totals:  # one bincount over all members per row
-            for row, t in enumerate((self._sums(at, v, n_cfg), self._sums(at, v * v, n_cfg), self._sums(at[(v != 0.0).ravel()], None, n_cfg))):
-                for acc, x in zip(self.accs, t):
-                    acc.walk[q][row] += x
+            totals.append(("truncated", np.where(status_trunc[o], w, 0.0)[None, :] * f))
+        for q, v in totals:
+            for row, t in enumerate((v, v * v, (v != 0.0).astype(np.float64))):
+                self.walk[q][:, row, at] += grp.sums(t)
 
     def finish(self, n_photons: int) -> list[tuple[dict, dict]]:
         """(stats, counts) of every member, as :meth:`PhotonAccumulator.finish`."""
         return [acc.finish(n_photons) for acc in self.accs]
+
+
+class _Groups:
+    """The photons of a block grouped by a tuple of integer labels (the rows of labels [K, P],
+    each in [0, bound)): ``order`` sorts the photons by group (stably), ``sums(w)`` adds the
+    columns of w [J, P] (photons in that order) over each group, giving [J, U]; ``labels``
+    [K, U] are each group's labels and ``group_of`` [P] the group of each photon in that order.
+    One pass over w per sum (np.add.reduceat on contiguous runs) where a bincount over all
+    members needs an index per element; the additions run in a fixed order (numpy's pairwise sum
+    of each run), so the bits do not depend on the machine."""
+
+    def __init__(self, labels: np.ndarray, bound: int):
+        group, n_group = np.zeros(labels.shape[1], dtype=np.int64), 1
+        for row in labels:  # one number per tuple of labels so far; renumbered before it could overflow
+            if n_group * bound >= 1 << 62:
+                _, group = np.unique(group, return_inverse=True)
+                group, n_group = group.reshape(-1), int(group.max()) + 1
+            group, n_group = group * bound + row, n_group * bound
+        group = np.unique(group, return_inverse=True)[1].reshape(-1)
+        self.order = np.argsort(group, kind="stable")
+        self.group_of = group[self.order]
+        self.starts = np.flatnonzero(np.concatenate(([True], self.group_of[1:] != self.group_of[:-1])))
+        self.labels = labels[:, self.order[self.starts]]
+
+    def sums(self, w: np.ndarray) -> np.ndarray:
+        return np.add.reduceat(w, self.starts, axis=1)
