@@ -239,3 +239,28 @@ def test_compiled_exit_walk_with_its_tail_chunk_agrees_with_eager(walk_stats):
     headline = np.concatenate([z_of("exits/Rd"), z_of("walk/absorbed")])
     walk_stats.assert_within(headline, dof, "compiled (with tail) vs eager: Rd per component, absorbed")
     walk_stats.assert_within(z_of("exits/radial_G", (slice(None), 2)), dof, "compiled (with tail) vs eager: Rd(r), total")
+
+
+def test_a_long_tail_stepped_in_the_deep_tail_chunks_tallies_the_same_photons(walk_spec, monkeypatch):
+    """The last photons of a long tail (albedo 1: a few paths of thousands of steps) move to ever
+    smaller chunks (workers.run.shard: tail_target).  Moving lanes changes no photon's path, only
+    when its results are summed: with and without the deep tail chunks the same photons give the
+    same event counts and the same sums to rounding (eager engine: the same code paths, no
+    compile)."""
+    import workers.run.plan as plan
+
+    monkeypatch.setenv("BSSRDF_COMPILE", "0")
+    spec = walk_spec(sigma_a=0.0, sigma_s=1.0, eta=1.33, photons=1000, estimator="hybrid", seed=11, max_scatter=3000,
+                     path_roulette={"start": 64, "survival": 0.75})
+    deep = run_shard(spec, 0)
+    monkeypatch.setattr(plan, "DEEP_TAIL_DIVISORS", ())
+    plain = run_shard(spec, 0)
+    assert len(deep.info["tail_chunks"]) >= 2 and plain.info["tail_chunks"] == deep.info["tail_chunks"][:1], (deep.info, plain.info)
+    assert deep.info["photon_steps"] == plain.info["photon_steps"]
+    assert deep.info["lane_steps"] == plain.info["lane_steps"], "the deep tail must not change how many steps the shard runs"
+    assert deep.counts.keys() == plain.counts.keys() and deep.stats.keys() == plain.stats.keys()
+    for name in deep.counts:
+        np.testing.assert_array_equal(deep.counts[name], plain.counts[name], err_msg=name)
+    for name in deep.stats:
+        for a, b in zip(deep.stats[name], plain.stats[name]):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-300, err_msg=name)

@@ -33,6 +33,8 @@ EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call
 CONNECT_CHUNK = 1 << 11  # lanes per call with connections: their kernel dominates, few photons run
 MAX_CHUNKS = 4  # 2^16 lanes in all: enough photons in flight to keep every chunk full
 TAIL_DIVISOR = 8  # exit walk: the last photons of a shard run in chunks of 1/TAIL_DIVISOR the lanes
+DEEP_TAIL_DIVISORS = (32, 128)  # ... and, once a tail has run DEEP_TAIL_AFTER calls, in chunks of 1/32, then 1/128 of the lanes
+DEEP_TAIL_AFTER = 64  # calls of the tail chunk (512 steps) before the deep tail's chunk may take over
 PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
 EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
@@ -77,7 +79,8 @@ class ShardPlan:
     connected to every bin (1 step per call); exits: exit events are binned (exit tally or the
     hybrid's multiple scattering); first_vertex: the hybrid's first-vertex connections.
     chunk / n_lanes: lanes per step call and in all; tail_chunk: lanes of the shard's tail
-    (None: no tail chunk); n_steps: steps per call.
+    (None: no tail chunk); deep_tail_chunks: lanes of a long tail's last photons, descending
+    (workers.run.shard); n_steps: steps per call.
     """
 
     spec: SimulationSpec
@@ -92,6 +95,7 @@ class ShardPlan:
     chunk: int
     n_lanes: int
     tail_chunk: int | None
+    deep_tail_chunks: tuple[int, ...]
     params: WalkParams
     n_steps: int
     geo: ConnectionGeometry
@@ -153,7 +157,7 @@ class ShardPlan:
             # A step costs the same for idle lanes: a shard's last photons, the longest paths, are
             # stepped in one short chunk (compiled: a second shape) once they fit.  Not with
             # connections, whose chunks are short already and whose kernel dominates.
-            tail_chunk=None if connect else chunk // TAIL_DIVISOR,
+            tail_chunk=None if connect else chunk // TAIL_DIVISOR, deep_tail_chunks=() if connect else tuple(chunk // d for d in DEEP_TAIL_DIVISORS),
             params=params, n_steps=1 if connect else EXIT_STEPS_PER_CALL, geo=geo, exit_bins=exit_bins, first_vertex=first_vertex,
             entry_layout=entry_layout,
         )  # fmt: skip

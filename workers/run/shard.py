@@ -26,7 +26,7 @@ from workers.walk.harvest import harvest_function
 from workers.walk.hybrid import entries_function
 from workers.walk.path_roulette import check_steps_per_call
 from workers.fold.reweight import MemberTallies, member_prefix
-from .plan import EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
+from .plan import DEEP_TAIL_AFTER, EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
 from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
 from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
@@ -89,6 +89,8 @@ class _Runner:
         self.active = len(self.chunks)
         self.next_launch = 0
         self.tail_lanes = None  # photons still running when the tail chunk took over
+        self.tail_calls = 0  # rounds of step calls since then
+        self.tail_chunks: list[int] = []  # the tail chunks stepped, in order
 
     # -- lanes --------------------------------------------------------------------------------
     def finish_and_refill(self, idx: torch.Tensor) -> tuple[int, int]:
@@ -130,20 +132,32 @@ class _Runner:
         """Launch the first photons into every lane (all EMPTY); returns how many were launched."""
         return self.finish_and_refill(torch.arange(self.plan.n_lanes))[1]
 
+    def tail_target(self, running: int) -> int | None:
+        """The tail chunk the running lanes should move to (nothing left to launch and they fit),
+        or None: once the tail chunk has run DEEP_TAIL_AFTER calls, the smallest of the deep
+        tail's chunks that holds them, else the tail chunk.  A long tail -- an albedo-1 walk's last few hundred paths, stepped for
+        tens of thousands of steps -- otherwise steps mostly idle lanes; a short one never
+        waits that long, so shards whose tails are short never need (or compile) its shape."""
+        plan = self.plan
+        if self.next_launch < plan.n_launch:
+            return None
+        deep = plan.deep_tail_chunks[::-1] if self.tail_calls >= DEEP_TAIL_AFTER else ()
+        for size in (*deep, plan.tail_chunk):  # the smallest that holds them
+            if size is not None and size < self.chunk and running <= size:
+                return size
+        return None
+
     def shrinkable(self, running: int) -> bool:
         """Whether compact() would step fewer lanes: nothing is left to launch and the running
-        lanes fit in fewer chunks, or in the tail chunk."""
+        lanes fit in fewer chunks, or in a tail chunk (tail_target)."""
         if self.next_launch < self.plan.n_launch:
             return False
-        if running <= (self.active - 1) * self.chunk:
-            return True
-        tail = self.plan.tail_chunk
-        return tail is not None and self.chunk != tail and running <= tail
+        return running <= (self.active - 1) * self.chunk or self.tail_target(running) is not None
 
     def compact(self, running: int) -> None:
         """Tail of the shard (nothing left to launch): move the running lanes, in lane order, to
         the front so that only ceil(running / chunk) chunks are stepped, and once they fit in
-        the tail chunk, step that alone."""
+        a tail chunk (tail_target), step that alone."""
         if not self.shrinkable(running):
             return
         n = self.active * self.chunk
@@ -151,10 +165,12 @@ class _Runner:
         for t in self.lanes.tensors():
             t[: len(idx)] = t[idx]
         self.lanes.status[len(idx) : n] = EMPTY
-        tail = self.plan.tail_chunk
-        if tail is not None and self.chunk != tail and running <= tail:
-            self.tail_lanes = running
-            self.chunk = tail
+        size = self.tail_target(running)
+        if size is not None:
+            if self.tail_lanes is None:
+                self.tail_lanes = running
+            self.tail_chunks.append(size)
+            self.chunk = size
             self.chunks = [self.lanes.view(0, self.chunk)]
         self.active = max(1, math.ceil(running / self.chunk))
 
@@ -273,6 +289,7 @@ class _Runner:
                 if plan.connect:
                     self.collect_vertices(vertex, k * self.chunk)
             self.count.steps += plan.n_steps
+            self.tail_calls += self.tail_lanes is not None
             if finished >= harvest_at or (running == 0 and finished > 0) or (finished and self.shrinkable(running)):
                 running = self.harvest(running)
         self.flush_vertices(force=True)
@@ -285,7 +302,7 @@ class _Runner:
             counts.update({member_prefix(j) + k: v for k, v in m_counts.items()})
         info = {
             "photons": plan.n_launch, "lanes": plan.n_lanes, "lane_steps": self.count.steps, "photon_steps": self.count.photon_steps,
-            "vertices": self.count.vertices, "tail_lanes": self.tail_lanes, "elapsed_s": time.perf_counter() - t0,
+            "vertices": self.count.vertices, "tail_lanes": self.tail_lanes, "tail_chunks": self.tail_chunks, "elapsed_s": time.perf_counter() - t0,
             "engine": "compiled" if plan.compiled else "eager", "torch": torch.__version__,
         }  # fmt: skip
         return ShardTally(plan.shard_index, {**stats, **batch_stats}, {**counts, **batch_counts}, plan.stop - plan.start, info)
