@@ -94,15 +94,16 @@ class MemberTallies:
         self.accs = [PhotonAccumulator(list(estimators), n_cfg, hist_shape) for _ in albedos]
         # Every member's accumulators are rows of one array, so a block adds to all members in one
         # operation (a group has up to a hundred members; a loop over them cost ~0.5 ms a block).
-        self.linear = {e: np.zeros((len(albedos), *self.accs[0].linear[e].shape)) for e in estimators}
-        for e, stacked in self.linear.items():
-            for acc, row in zip(self.accs, stacked):
-                acc.linear[e] = row
-        self.squares: dict[str, np.ndarray] = {}  # estimator -> [members, n_sq], rows shared with accs (once added)
-        self.walk = {q: np.zeros((len(albedos), *a.shape)) for q, a in self.accs[0].walk.items()}
-        for q, stacked in self.walk.items():
-            for acc, row in zip(self.accs, stacked):
-                acc.walk[q] = row
+        self.linear = {e: self._rows("linear", e, a.shape) for e, a in self.accs[0].linear.items()}
+        self.walk = {q: self._rows("walk", q, a.shape) for q, a in self.accs[0].walk.items()}
+        self.squares: dict[str, np.ndarray] = {}  # estimator -> [members, n_sq] (once added), as above
+
+    def _rows(self, attr: str, key: str, shape: tuple[int, ...]) -> np.ndarray:
+        """A zero array [members, *shape] whose row j becomes member j's ``getattr(acc, attr)[key]``."""
+        stacked = np.zeros((len(self.accs), *shape))
+        for acc, row in zip(self.accs, stacked):
+            getattr(acc, attr)[key] = row
+        return stacked
 
     def __len__(self) -> int:
         return len(self.accs)
@@ -111,35 +112,20 @@ class MemberTallies:
         """Indices [members * n] of one bincount over all members: member j's entries at j * size + flat."""
         return (np.arange(len(self.accs))[:, None] * size + flat[None, :]).ravel()
 
-    def _sums(self, at: np.ndarray, w: np.ndarray | None, size: int) -> np.ndarray:
+    def _sums(self, at: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
         """[members, size]: one bincount over all members at indices ``at`` (:meth:`_offsets`)
-        with weights w [members, n]; w None counts the entries (integers, the same values as
-        summing ones).  Member j's sums take its entries in their order, as its own bincount would."""
-        b = np.bincount(at, weights=None if w is None else w.ravel(), minlength=len(self.accs) * size)
-        return b.reshape(len(self.accs), size)
-
-    def _bincounts(self, parts, size: int) -> np.ndarray:
-        """[members, size]: per member the sum over ``parts`` (index [n], weights [members, n]) of
-        the bincounts, one bincount over all members per part (member j's entries offset by j * size)."""
-        total = None
-        for flat, w in parts:
-            b = self._sums(self._offsets(flat, size), w, size)
-            total = b if total is None else total + b
-        return total
-
-    def _add(self, estimator: str, row: int, size: int, parts) -> None:
-        """Add to row ``row`` of every member's linear accumulator the sum of bincounts of
-        (flat index [n], weights [J, n]) parts: one bincount over all members per part (member
-        j's entries offset by j * size), summed per member in the order of its entries."""
-        self.linear[estimator][:, row] += self._bincounts(parts, size)
+        with weights w [members, n].  Member j's sums take its entries in their order, as its own
+        bincount would."""
+        return np.bincount(at, weights=w.ravel(), minlength=len(self.accs) * size).reshape(len(self.accs), size)
 
     def add_exits(self, flat: np.ndarray, g: np.ndarray, s: np.ndarray, nscat: np.ndarray) -> None:
         """The exit tally's entries of one block, each member's weighted by ratio ** nscat."""
         f = member_factors(self.ratios, nscat)
         gm, sm = g[None, :] * f, s[None, :] * f
         size = self.accs[0].linear["exits"].shape[1]
+        at = self._offsets(flat, size)
         for row, w in enumerate((gm, gm * gm, sm, sm * sm, (gm != 0.0).astype(np.float64))):
-            self._add("exits", row, size, [(flat, w)])
+            self.linear["exits"][:, row] += self._sums(at, w, size)
 
     def add_hybrid(self, flat2: np.ndarray, g: np.ndarray, s: np.ndarray, key: np.ndarray, nscat: np.ndarray) -> None:
         """The hybrid's entries of one block ([P, E]: E - 1 first-vertex samples, then the
@@ -190,9 +176,7 @@ class MemberTallies:
             self.linear["hybrid"][:, row] += scale * lead[None, :] + ex_j
         exit_sq = self._exit_squares(grp, ge, se, f, q_se.reshape(key_e.shape)[:, o], n_sq)
         if "hybrid" not in self.squares:
-            self.squares["hybrid"] = np.zeros((len(self.accs), n_sq))
-            for acc, row in zip(self.accs, self.squares["hybrid"]):
-                acc.squares["hybrid"] = row
+            self.squares["hybrid"] = self._rows("squares", "hybrid", (n_sq,))
         self.squares["hybrid"] += (r * r) * sq_single[None, :] + exit_sq
 
     def _exit_squares(self, grp: "_Groups", ge: np.ndarray, se: np.ndarray, f: np.ndarray, q_se: np.ndarray, n_sq: int) -> np.ndarray:

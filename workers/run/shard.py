@@ -135,9 +135,10 @@ class _Runner:
     def tail_target(self, running: int) -> int | None:
         """The tail chunk the running lanes should move to (nothing left to launch and they fit),
         or None: once the tail chunk has run DEEP_TAIL_AFTER calls, the smallest of the deep
-        tail's chunks that holds them, else the tail chunk.  A long tail -- an albedo-1 walk's last few hundred paths, stepped for
-        tens of thousands of steps -- otherwise steps mostly idle lanes; a short one never
-        waits that long, so shards whose tails are short never need (or compile) its shape."""
+        tail's chunks that holds them, else the tail chunk.  A long tail -- an albedo-1 walk's
+        last few hundred paths, stepped for tens of thousands of steps -- otherwise steps mostly
+        idle lanes; a short one never waits that long, so shards whose tails are short never need
+        (or compile) the deeper shapes."""
         plan = self.plan
         if self.next_launch < plan.n_launch:
             return None
