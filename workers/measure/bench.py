@@ -101,7 +101,7 @@ def bench_one(medium: str, estimator: str, photons: int, threads: int = 1, repea
         "photons_per_s": n / wall,
         "steps_per_photon": steps / n,
         "steps_per_s": steps / wall,
-        "steps_per_cpu_s": steps / cpu,
+        "steps_per_cpu_s": _steps_per_cpu_s(tallies),  # the figure each run's ratio divides
         "steps_per_s_per_core": steps / wall / threads,
         "vertices": sum(t.info["vertices"] for t in tallies),
         "wall_s": wall,
@@ -115,6 +115,7 @@ def bench_one(medium: str, estimator: str, photons: int, threads: int = 1, repea
 
 
 def _steps_per_cpu_s(tallies) -> float:
+    """Interaction steps per CPU-second of one run's shards."""
     return sum(t.info["photon_steps"] for t in tallies) / sum(t.info["cpu_s"] for t in tallies)
 
 
