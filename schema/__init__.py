@@ -6,7 +6,7 @@ No torch and no web framework here: workers, the service and clients all import 
 >>> spec = load_spec("examples/skimmilk.json")        # doctest: +SKIP
 >>> [c.albedo for c in spec.channels()]               # doctest: +SKIP
 
-Modules: :mod:`schema.spec` (SimulationSpec, load_spec), :mod:`schema.medium` (MediumSpec,
+Modules: :mod:`schema.spec` (SimulationSpec), :mod:`schema.loading` (load_spec, parse_spec), :mod:`schema.medium` (MediumSpec,
 ChannelOptics), :mod:`schema.presets` (Jensen et al. 2001 materials), :mod:`schema.bins`
 (BinSpec, edges), :mod:`schema.tables` (Arrow schemas, metadata keys), :mod:`schema.errors`,
 :mod:`schema.constraints` (range checks), :mod:`schema.names` (the name rule),
@@ -36,7 +36,8 @@ from .media import Medium
 from .medium import ChannelOptics, MediumSpec
 from .presets import PRESET_CHANNELS, PRESETS, Preset, get_preset
 from .names import NAME_MAX, NAME_PATTERN, InvalidName, check_name
-from .spec import MAX_INCIDENCE, MAX_PHOTONS, MAX_TASKS, SimulationSpec, load_spec, parse_spec
+from .spec import MAX_INCIDENCE, MAX_PHOTONS, MAX_TASKS, SimulationSpec
+from .loading import load_spec, parse_spec
 from .sweep import AlbedoGrid, SweepPoint, SweepSpec, linear_albedos, pbrt_albedos
 from .tables import (
     BINS_SCHEMA,

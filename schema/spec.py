@@ -16,7 +16,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -25,7 +24,6 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    ValidationError,
     ValidationInfo,
     field_validator,
     model_validator,
@@ -42,7 +40,7 @@ from .bins import (
 )
 from .groups import SHARED_ESTIMATORS
 from .constraints import Interval
-from .errors import ShardIndexError, SpecError
+from .errors import ShardIndexError
 from . import groups as _groups
 from . import media as _media
 from .medium import ChannelOptics, MediumSpec
@@ -52,7 +50,7 @@ from .roulette import PathRoulette
 from .stretch import Stretch
 from .target import TargetSpec, check_radial_target
 
-__all__ = ["SimulationSpec", "load_spec", "parse_spec", "MAX_PHOTONS", "MAX_INCIDENCE", "MAX_TASKS"]
+__all__ = ["SimulationSpec", "MAX_PHOTONS", "MAX_INCIDENCE", "MAX_TASKS"]
 
 MAX_PHOTONS = 2**40
 """Most photons per incidence angle per channel (photon indices must fit the random streams)."""
@@ -378,26 +376,3 @@ class SimulationSpec(BaseModel):
     def spec_hash(self) -> str:
         """sha256 hex digest of :meth:`canonical_json` (UTF-8)."""
         return hashlib.sha256(self.canonical_json().encode("utf-8")).hexdigest()
-
-
-def parse_spec(data: Any, source: str = "") -> SimulationSpec:
-    """Validate a dict (or JSON text/bytes) into a :class:`SimulationSpec`; :class:`SpecError`
-    with one line per problem otherwise."""
-    try:
-        if isinstance(data, (str, bytes, bytearray)):
-            return SimulationSpec.model_validate_json(data)
-        return SimulationSpec.model_validate(data)
-    except ValidationError as err:
-        raise SpecError.from_validation_error(err, source) from None
-
-
-def load_spec(path: str | os.PathLike[str]) -> SimulationSpec:
-    """Read and validate a spec JSON file; :class:`SpecError` on bad JSON or bad values."""
-    source = os.fspath(path)
-    try:
-        with open(source, encoding="utf-8") as f:
-            data = json.load(f)
-    except json.JSONDecodeError as err:
-        raise SpecError(f"invalid simulation spec ({source}): not valid JSON: {err}",
-                        [("(spec)", str(err))]) from None
-    return parse_spec(data, source)
