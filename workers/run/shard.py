@@ -88,6 +88,8 @@ class _Runner:
         self.chunks = [self.lanes.view(a, a + self.chunk) for a in range(0, plan.n_lanes, self.chunk)]
         self.active = len(self.chunks)
         self.next_launch = 0
+        self.launch = torch.tensor([plan.start, 0, plan.n_launch, plan.cfgs.n], dtype=torch.int64)  # the harvest's launch numbers
+        self.n_valid = torch.zeros((), dtype=torch.int64)  # the real lanes of a harvest block
         self.tail_lanes = None  # photons still running when the tail chunk took over
         self.tail_calls = 0  # rounds of step calls since then
         self.tail_chunks: list[int] = []  # the tail chunks stepped, in order
@@ -107,8 +109,9 @@ class _Runner:
             m = len(block)
             if m < HARVEST_BLOCK and plan.compiled:  # one static shape: pad with the scratch lane
                 block = torch.cat((block, torch.full((HARVEST_BLOCK - m,), plan.n_lanes, dtype=torch.int64)))
-            launch = torch.tensor([plan.start, self.next_launch + a, plan.n_launch, plan.cfgs.n], dtype=torch.int64)
-            out = self.kernels.harvest(block, torch.tensor(m, dtype=torch.int64), L, plan.table, launch, plan.exit_bins)
+            self.launch[1] = self.next_launch + a  # written in place: building two small tensors a block cost ~1 % of a short walk
+            self.n_valid.fill_(m)
+            out = self.kernels.harvest(block, self.n_valid, L, plan.table, self.launch, plan.exit_bins)
             outs.append([v[:m].numpy() for v in out])
         self.next_launch += launched
         if not outs:
@@ -177,15 +180,15 @@ class _Runner:
 
     def harvest(self, running: int) -> int:
         """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
-        st = self.lanes.status[: self.active * self.chunk]
+        st = self.lanes.status[: self.active * self.chunk].numpy()  # numpy's flatnonzero: ~2.5x faster than torch.nonzero here
         launching = self.next_launch < self.plan.n_launch
         done = (st != RUNNING) & (st != EMPTY) if "hybrid" in self.plan.estimators or not launching else None
         if "hybrid" in self.plan.estimators:
-            self.tally_hybrid(torch.nonzero(done).squeeze(1))
+            self.tally_hybrid(torch.from_numpy(np.flatnonzero(done)))
         # While photons are left to launch every lane not running is refilled (there are no EMPTY
         # lanes then but at the start); afterwards only the finished ones are recorded.
         free = st != RUNNING if launching else done
-        finished, launched = self.finish_and_refill(torch.nonzero(free).squeeze(1))
+        finished, launched = self.finish_and_refill(torch.from_numpy(np.flatnonzero(free)))
         if self.acc.ready:
             self.flush_vertices(force=True)  # a batch folds only after all its vertices are tallied
             self.acc.fold_ready()
