@@ -65,3 +65,52 @@ def test_the_command_stops_with_a_clear_error_on_a_bad_yardstick(tmp_path, capsy
     args = p.parse_args(["--media", "M2", "--estimators", "exits", "--photons", "200", "--repeat", "1", "--yardstick", str(tmp_path / "missing")])
     assert main(args) == 2
     assert "--yardstick: could not run" in capsys.readouterr().err
+
+
+def test_profile_times_each_kernel_of_one_shard_without_changing_it():
+    """--profile: the parts are the kernels the shard called plus the Python left over, on one
+    torch thread (restored afterwards); lane-steps count every lane a step call advanced, so they
+    bound the photons' own steps; timing wrappers leave the tallies as they are."""
+    import numpy as np
+    import torch
+
+    from workers.measure.bench import _spec
+    from workers.measure.profile import format_profile, profile_shard
+    from workers.run.shard import run_shard
+
+    threads = torch.get_num_threads()
+    r = profile_shard("M2", "hybrid", photons=3000, repeat=3)
+    assert torch.get_num_threads() == threads
+    assert set(r["parts"]) == {"step", "harvest", "entries", "python"}  # no connections: the hybrid's are in its entries
+    assert r["cpu_s"] == sorted(r["runs_cpu_s"])[1]
+    assert sum(p["cpu_s"] for p in r["parts"].values()) == pytest.approx(r["cpu_s"])
+    assert r["parts"]["step"]["calls"] > 0 and r["parts"]["harvest"]["calls"] > 0
+    assert 0.0 < r["occupancy"] <= 1.0 and r["photon_steps"] <= r["lane_steps"]
+    assert 15 < r["photon_steps"] / r["photons"] < 35
+    assert "ns per lane-step" in format_profile(r)
+
+    calls: list[str] = []
+
+    def count(name, kernel):
+        def call(*args):
+            calls.append(name)
+            return kernel(*args)
+        return call
+
+    spec = _spec("M2", "hybrid", 3000)
+    plain, wrapped = run_shard(spec, 0), run_shard(spec, 0, wrap_kernels=count)
+    assert {"step", "harvest", "entries"} <= set(calls)
+    for q, parts in plain.stats.items():
+        for a, b in zip(parts, wrapped.stats[q]):
+            assert np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True), q
+
+
+def test_bench_profile_option_prints_json(capsys):
+    p = argparse.ArgumentParser()
+    _arguments(p)
+    assert main(p.parse_args(["--media", "M2", "--estimators", "exits", "--photons", "500", "--repeat", "1", "--profile", "--json"])) == 0
+    import json
+
+    out = json.loads(capsys.readouterr().out)
+    r = out["M2"]["exits"]
+    assert r["photons"] == 500 and set(r["parts"]) == {"step", "harvest", "python"}

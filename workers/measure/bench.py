@@ -13,6 +13,9 @@ Shared machines drift by tens of percent within minutes, so a speed is best stat
 a reference walk timed in the same minutes.  --yardstick CMD runs CMD (a shell command whose
 output holds ``steps/s=<number>``; ``{medium}`` in it becomes M1 or M2) before every timed run and
 reports each run's steps per CPU-second over the yardstick's steps per second, and their median.
+
+--profile instead runs one shard per medium and estimator in this process and prints where its
+CPU goes, kernel by kernel (:mod:`workers.measure.profile`).
 """
 
 from __future__ import annotations
@@ -132,11 +135,15 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=1, help="shards run concurrently, one worker process and core each (default 1)")
     p.add_argument("--repeat", type=positive_int, default=3, help="timed runs; the median is reported (default 3)")
     p.add_argument("--json", action="store_true", help="print one JSON object keyed by medium and estimator")
+    p.add_argument("--profile", action="store_true", help="instead: run one shard per medium and estimator in this process on one "
+                   "torch thread and print the CPU of each kernel and of the Python around them (workers.measure.profile)")
     p.add_argument("--yardstick", metavar="CMD", help="a reference walk run before every timed run ({medium} -> M1/M2; "
                    "its output holds steps/s=<number>): reports each run's steps per CPU-second over it, and the median")
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.profile:
+        return _profile(args)
     out: dict[str, dict] = {}
     for medium in args.media.split(","):
         for est in args.estimators.split(","):
@@ -157,6 +164,23 @@ def main(args: argparse.Namespace) -> int:
                     + (f"; {r['ratio']:.3f}x the yardstick (runs {', '.join(f'{x:.3f}' for x in r['ratios'])})" if "ratio" in r else ""),
                     flush=True,
                 )
+    if args.json:
+        print(json.dumps(out, sort_keys=True))
+    return 0
+
+
+def _profile(args: argparse.Namespace) -> int:
+    """--profile: workers.measure.profile for each medium and estimator (--threads and
+    --yardstick do not apply: one shard, this process)."""
+    from workers.measure.profile import format_profile, profile_shard
+
+    out: dict[str, dict] = {}
+    for medium in args.media.split(","):
+        for est in args.estimators.split(","):
+            r = profile_shard(medium, est, args.photons or DEFAULT_PHOTONS[(medium, est)], args.repeat)
+            out.setdefault(medium, {})[est] = r
+            if not args.json:
+                print(format_profile(r), flush=True)
     if args.json:
         print(json.dumps(out, sort_keys=True))
     return 0

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Callable
 
 import numpy as np
@@ -43,12 +43,16 @@ class _Kernels:
     connect: Callable  # both connection techniques for a chunk of vertices
 
     @classmethod
-    def for_plan(cls, plan: ShardPlan) -> "_Kernels":
+    def for_plan(cls, plan: ShardPlan, wrap: Callable[[str, Callable], Callable] | None = None) -> "_Kernels":
+        """The plan's kernels; wrap(name, kernel), if given, replaces each (a profiler's timer)."""
         c = plan.compiled
-        return cls(
+        kernels = cls(
             step=step_function(plan.params, plan.n_steps, plan.connect, c), harvest=harvest_function(c),
             entries=entries_function(c), connect=connection_function(c),
         )  # fmt: skip
+        if wrap is None:
+            return kernels
+        return cls(**{f.name: wrap(f.name, getattr(kernels, f.name)) for f in fields(cls)})
 
 
 @dataclass
@@ -65,9 +69,10 @@ class _Runner:
     """The mutable bookkeeping of one shard run (kept out of the pure entry point): the lanes and
     the chunks they are stepped in, the accumulators, the vertices waiting for connection."""
 
-    def __init__(self, plan: ShardPlan, progress: Callable[[int], None] | None, members: tuple[float, ...] = ()):
+    def __init__(self, plan: ShardPlan, progress: Callable[[int], None] | None, members: tuple[float, ...] = (),
+                 wrap_kernels: Callable[[str, Callable], Callable] | None = None):
         self.plan, self.progress = plan, progress
-        self.kernels = _Kernels.for_plan(plan)
+        self.kernels = _Kernels.for_plan(plan, wrap_kernels)
         self.count = _Counters()
         batch_estimators = [e for e in plan.estimators if e in BATCH_ESTIMATORS]
         photon_estimators = [e for e in plan.estimators if e not in BATCH_ESTIMATORS]
@@ -314,7 +319,7 @@ class _Runner:
 
 
 def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int], None] | None = None,
-              members: tuple[float, ...] = ()) -> ShardTally:
+              members: tuple[float, ...] = (), wrap_kernels: Callable[[str, Callable], Callable] | None = None) -> ShardTally:
     """Simulate shard `shard_index` of `spec`; a pure function of its inputs.
 
     members: further albedos (each <= the spec's, one-channel medium, exits or hybrid) tallied
@@ -324,6 +329,9 @@ def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int
     progress, if given, is called with the number of photons (all configurations) finished since
     the last call.  The statistics in the result do not depend on the machine, the thread count
     or when the shard runs; `info` carries timings and counters that do.
+
+    wrap_kernels(name, kernel), if given, returns what the run calls instead of each kernel
+    ("step", "harvest", "entries", "connect"): a profiler's timers (workers.measure.profile).
     """
     init_engine()
-    return _Runner(ShardPlan.build(spec, shard_index), progress, tuple(members)).run()
+    return _Runner(ShardPlan.build(spec, shard_index), progress, tuple(members), wrap_kernels).run()
