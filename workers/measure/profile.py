@@ -20,6 +20,10 @@ from typing import Callable
 
 import torch
 
+from workers.measure.bench import _spec
+from workers.run.plan import ShardPlan
+from workers.run.shard import run_shard
+
 __all__ = ["profile_shard", "format_profile"]
 
 
@@ -53,10 +57,6 @@ def profile_shard(medium: str, estimator: str, photons: int, repeat: int = 3) ->
     "parts": {name: {"cpu_s", "calls", "ns_per_photon"}} with "python" the rest of the shard's
     CPU, "runs_cpu_s": every run's CPU seconds}.
     """
-    from workers.measure.bench import _spec  # noqa: PLC0415 - torch-free parser first
-    from workers.run.plan import ShardPlan
-    from workers.run.shard import run_shard
-
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
