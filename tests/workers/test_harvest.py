@@ -147,7 +147,7 @@ def test_exit_bins_match_the_reference_lookups():
 HARVEST_N, HARVEST_CFG, HARVEST_BLOCK = 4000, 3, 512
 
 
-def _harvest(lanes: dict, compiled: bool, launches_short: int = 100):
+def _harvest(lanes: dict, compiled: bool, launches_short: int = 100, exits: bool = True):
     """The shard runner's harvest on `lanes` (plus a scratch lane): harvest_block over blocks of
     the lanes not running, the last padded with the scratch lane.  Returns the lanes after, the
     records concatenated, the free lanes, the config table and launch = (start, next, end)."""
@@ -162,7 +162,7 @@ def _harvest(lanes: dict, compiled: bool, launches_short: int = 100):
     table = config_table(spec, build_configs(spec))
     idx = torch.nonzero(lanes["status"] != RUNNING).squeeze(1)
     start, nxt, end = 5000, 7, 7 + len(idx) - launches_short
-    fn, bins = harvest_function(compiled), _bins()[0]
+    fn, bins = harvest_function(compiled, exits), _bins()[0]
     outs = []
     with torch.no_grad():
         for a in range(0, len(idx), HARVEST_BLOCK):
@@ -219,6 +219,17 @@ def test_harvest_block_records_lanes_and_refills_them_in_lane_order():
     for name in before:
         assert torch.equal(getattr(full, name)[:HARVEST_N][running], before[name][running]), name
     assert int(full.status[HARVEST_N]) == int(before["status"][0])  # the scratch lane's status is never written
+
+
+def test_harvest_without_the_exit_tally_records_and_refills_the_same_with_no_entries():
+    """A run without the exit tally (the hybrid alone) skips the exit lookup: every other record
+    and every lane after the refill are those of the full harvest, the entries are zeros."""
+    lanes = _lanes(HARVEST_N, _bins()[0], seed=23)
+    full, rec, _, _, _ = _harvest({k: v.clone() for k, v in lanes.items()}, compiled=False)
+    bare, rec_bare, _, _, _ = _harvest({k: v.clone() for k, v in lanes.items()}, compiled=False, exits=False)
+    assert all(torch.equal(a, b) for a, b in zip(rec[3:], rec_bare[3:]))
+    assert (rec[0] != 0).any() and all(bool((v == 0).all()) for v in rec_bare[:3])
+    assert all(torch.equal(a, b) for a, b in zip(full.tensors(), bare.tensors()))
 
 
 _COMPILED_SCRIPT = """

@@ -140,6 +140,7 @@ class MemberTallies:
         """
         if len(nscat) == 0:
             return
+        flat2, g, s, key = (np.ascontiguousarray(a) for a in (flat2, g, s, key))  # the kernel's are entry-major views
         value = np.stack([g, s, g, g, g, s, g, g])  # [8, P, E]
         e = value.shape[-1]
         single, ex = value[..., :-1], value[..., -1]

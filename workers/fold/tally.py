@@ -131,10 +131,12 @@ class PhotonAccumulator:
         weights whose sums per key are the per-photon squares of every level (square_parts
         regions; see :func:`photon_moments`)."""
         acc = self.linear[estimator]
-        f = flat2.reshape(-1)
+        # Entries are summed in memory order (ravel "K": no copy of the kernel's entry-major
+        # arrays); the arrays of one call share their layout, so values stay with their keys.
+        f, g, s = flat2.ravel("K"), g.ravel("K"), s.ravel("K")
         for row, w in ((0, g), (2, s), (4, (g != 0.0).astype(np.float64))):  # rows 1, 3 unused: squares kept below
-            acc[row] += np.bincount(f, weights=w.reshape(-1), minlength=acc.shape[1])
-        sq = np.bincount(square_key.reshape(-1), weights=square_weight.reshape(-1), minlength=int(self.layout.square_offsets[-1]))
+            acc[row] += np.bincount(f, weights=w, minlength=acc.shape[1])
+        sq = np.bincount(square_key.ravel("K"), weights=square_weight.ravel("K"), minlength=int(self.layout.square_offsets[-1]))
         if estimator in self.squares:
             self.squares[estimator] += sq
         else:

@@ -47,7 +47,7 @@ class _Kernels:
         """The plan's kernels; wrap(name, kernel), if given, replaces each (a profiler's timer)."""
         c = plan.compiled
         kernels = cls(
-            step=step_function(plan.params, plan.n_steps, plan.connect, c), harvest=harvest_function(c),
+            step=step_function(plan.params, plan.n_steps, plan.connect, c), harvest=harvest_function(c, "exits" in plan.estimators),
             entries=entries_function(c), connect=connection_function(c),
         )  # fmt: skip
         if wrap is None:

@@ -147,7 +147,8 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     return flat, batch, wd, wd / cos_o
 
 
-def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table: ConfigTable, launch: torch.Tensor, bins: ExitBins):
+def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table: ConfigTable, launch: torch.Tensor, bins: ExitBins,
+                  exits: bool = True):
     """Record the photons of lanes idx and refill those lanes: the harvest's work per lane that
     is not running, not per lane of the array.
 
@@ -156,7 +157,8 @@ def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table:
     launch number of position 0, launches in the shard, configurations].  Position j records,
     before the refill:
     - flat, G, S: the exit tally's entry (:func:`exit_bins`) if the lane EXITED, else flat 0 and
-      G = S = 0, which leave every sum of the tally as it is;
+      G = S = 0, which leave every sum of the tally as it is (always these where ``exits`` is
+      False: a run without the exit tally -- the hybrid makes its own entries -- skips the lookup);
     - key = batch * n_cfg + cfg of a finished photon (EXITED, ABSORBED or TRUNCATED), else
       n_batches * n_cfg (a spare slot); its absorbed weight and its truncated weight (float64, 0
       for lanes not finished); steps: its interaction steps (0 if not finished);
@@ -173,9 +175,14 @@ def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table:
     status = lanes.status[idx]
     done = valid & (status != RUNNING) & (status != EMPTY)
     exited = valid & (status == EXITED)
-    flat, batch, g, s = exit_bins(idx, lanes, bins)
-    flat = torch.where(exited, flat, 0)
-    g, s = torch.where(exited, g, 0.0), torch.where(exited, s, 0.0)
+    if exits:
+        flat, batch, g, s = exit_bins(idx, lanes, bins)
+        flat = torch.where(exited, flat, 0)
+        g, s = torch.where(exited, g, 0.0), torch.where(exited, s, 0.0)
+    else:
+        batch = batch_index(lanes.photon[idx], bins.batch_starts)
+        flat, g = torch.zeros_like(idx), torch.zeros(idx.shape, dtype=torch.float64)
+        s = torch.zeros_like(g)
     key = torch.where(done, batch * n_cfg + lanes.cfg[idx], bins.batch_starts.shape[0] * n_cfg)
     absorbed = torch.where(done, lanes.absorbed[idx].double(), 0.0)
     w = lanes.w[idx]
@@ -190,6 +197,11 @@ def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table:
 
 
 @lru_cache(maxsize=None)
-def harvest_function(compiled: bool):
-    """:func:`harvest_block`, compiled for one block size (the caller pads) or eager."""
-    return compile_kernel(harvest_block, "harvest_block") if compiled else harvest_block
+def harvest_function(compiled: bool, exits: bool = True):
+    """:func:`harvest_block` with or without the exit tally's lookup, compiled for one block
+    size (the caller pads) or eager."""
+
+    def fn(idx, n_valid, lanes, table, launch, bins):
+        return harvest_block(idx, n_valid, lanes, table, launch, bins, exits)
+
+    return compile_kernel(fn, "harvest_block", (exits,)) if compiled else fn

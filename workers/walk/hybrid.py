@@ -113,6 +113,14 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
     spatial = r * n_theta + theta (r = n_r beyond r_max: phase sample only); G and S float64 (0
     where the phase direction points down or is totally reflected).
     """
+    spatial, direction, G, S = (torch.stack(c, dim=1) for c in zip(*_first_vertex_columns(photon, cfg, geo)))
+    return spatial, direction, G.double(), S.double()
+
+
+def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVertexGeometry):
+    """:func:`first_vertex_samples` as k + 1 columns (spatial, direction, G, S) of [P] tensors,
+    G and S float32: the compiled entries work on whole columns, which vectorize over the
+    photons (an [P, E] layout with E ~ 4 made inductor emit scalar loops)."""
     f32 = torch.float32
     n_r, n_t = geo.n_r, geo.n_theta
     n_bins = n_r * n_t
@@ -179,8 +187,7 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
         cols.append((b, _direction_index(xs, ys, dx, dy, cin, geo), bj * fresnel_transmittance(cin, 1.0 / geo.eta) * qpj,
                      bj * transmittance_cos_ratio(cin, 1.0 / geo.eta) * (pj / d2)))  # fmt: skip
     cols.append((sp_p, dir_p, G_p, S_p))
-    spatial, direction, G, S = (torch.stack(c, dim=1) for c in zip(*cols))
-    return spatial, direction, G.double(), S.double()
+    return cols
 
 
 @dataclass(frozen=True)
@@ -205,32 +212,43 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     component and for total, the key into the squares histogram and x (x + 2 sum of the later
     entries of the photon with the same key): summed per key, the sum over photons of the
     photon's squared contribution (workers.fold.tally.photon_moments, here fused into the kernel).
+    The results are views of entry-major storage ([E, P] and [8, E, P]): computed as columns
+    over the photons, the kernel is one vectorized loop (built as [P, E], inductor emitted
+    scalar loops for the short entry axis and ran 25 % slower).
     """
     cfg = lanes.cfg[idx]
-    spatial, direction, g, s = first_vertex_samples(lanes.photon[idx], cfg, geo)
+    cols = _first_vertex_columns(lanes.photon[idx], cfg, geo)
     flat, _batch, ge, se = exit_bins(idx, lanes, bins)
     keep = (lanes.status[idx] == EXITED) & (lanes.nscat[idx] >= 2)
-    spatial = torch.cat((spatial, (torch.div(flat, lay.n_dir, rounding_mode="floor") % lay.n_sp)[:, None]), dim=1)
-    direction = torch.cat((direction, (flat % lay.n_dir)[:, None]), dim=1)
-    g = torch.cat((g, torch.where(keep, ge, 0.0)[:, None]), dim=1)
-    s = torch.cat((s, torch.where(keep, se, 0.0)[:, None]), dim=1)
-    comp = torch.zeros_like(spatial)
-    comp[:, -1] = 1
-    c = cfg[:, None]
-    flat2 = histogram_index(c, comp, spatial, direction, lay.n_sp, lay.n_dir)
-    keys, values = [], []
+    # Columns e = 0 .. E - 1 of [P] tensors: the first-vertex samples (component 0), then the exit (1).
+    spatial = [c[0] for c in cols] + [torch.div(flat, lay.n_dir, rounding_mode="floor") % lay.n_sp]
+    direction = [c[1] for c in cols] + [flat % lay.n_dir]
+    g = [c[2].double() for c in cols] + [torch.where(keep, ge, 0.0)]
+    s = [c[3].double() for c in cols] + [torch.where(keep, se, 0.0)]
+    e = len(spatial)
+    comp = [0] * (e - 1) + [1]
+    flat2 = [histogram_index(cfg, comp[j], spatial[j], direction[j], lay.n_sp, lay.n_dir) for j in range(e)]
     o_bins_g, o_bins_s, o_radial, o_rd = lay.square_offsets
-    for c3 in (comp, torch.full_like(comp, 2)):
-        b = histogram_index(c, c3, spatial, direction, lay.n_sp, lay.n_dir, n_comp=3)
-        n_r1 = lay.n_sp // lay.n_theta
-        keys += [b + o_bins_g, b + o_bins_s, (c * 3 + c3) * n_r1 + torch.div(spatial, lay.n_theta, rounding_mode="floor") + o_radial,
-                 c * 3 + c3 + o_rd]  # fmt: skip
+    n_r1 = lay.n_sp // lay.n_theta
+    keys, values = [], []  # 8 key sets, each E columns
+    for total in (False, True):
+        c3 = [2] * e if total else comp
+        b = [histogram_index(cfg, c3[j], spatial[j], direction[j], lay.n_sp, lay.n_dir, n_comp=3) for j in range(e)]
+        keys += [[x + o_bins_g for x in b], [x + o_bins_s for x in b],
+                 [(cfg * 3 + c3[j]) * n_r1 + torch.div(spatial[j], lay.n_theta, rounding_mode="floor") + o_radial for j in range(e)],
+                 [cfg * 3 + c3[j] + o_rd for j in range(e)]]  # fmt: skip
         values += [g, s, g, g]
-    key, value = torch.stack(keys), torch.stack(values)
-    e = key.shape[-1]
-    cross = [torch.where(key[..., j + 1 :] == key[..., j : j + 1], value[..., j + 1 :], 0.0).sum(dim=-1) for j in range(e - 1)]
-    cross = torch.stack([*cross, torch.zeros_like(cross[0])], dim=-1)
-    return flat2, g, s, key, value * (value + 2.0 * cross)
+    weights = []  # x_j (x_j + 2 sum of the later x_i with the same key), summed in entry order
+    for key, value in zip(keys, values):
+        for j in range(e):
+            cross = sum((torch.where(key[i] == key[j], value[i], 0.0) for i in range(j + 1, e)), torch.zeros_like(value[j]))
+            weights.append(value[j] * (value[j] + 2.0 * cross))
+    # Stored entry-major ([E, P], contiguous along the photons, so every loop vectorizes; one
+    # stack each, nested stacks cost a copy) and returned as [P, E] views.
+    n = idx.shape[0]
+    square_key = torch.stack([x for k in keys for x in k]).view(len(keys), e, n)
+    return (torch.stack(flat2).T, torch.stack(g).T, torch.stack(s).T, square_key.transpose(1, 2),
+            torch.stack(weights).view(len(keys), e, n).transpose(1, 2))  # fmt: skip
 
 
 @lru_cache(maxsize=None)
