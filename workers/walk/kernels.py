@@ -92,13 +92,19 @@ def _compiling(name: str):
         tell(False)
 
 
-INDUCTOR_CONFIG = {"max_fusion_size": 512}
-"""Inductor settings every kernel is compiled with (part of the artifact key).  The exit walk's
-call unrolls EXIT_STEPS_PER_CALL steps; with inductor's default ``max_fusion_size`` (64 nodes) it
-emits about one loop over the lane arrays per step, and the step is bound by the memory traffic
-of those passes.  512 lets the unrolled steps fuse into fewer loops: paired on a 2-core Xeon
-(AVX-512), exit walk M1 +37-46 %, M2 +13-22 %, hybrid M1 +38-51 % steps per CPU-second; the same
-tables to the bit and about the same compile time (BENCHMARKS.md)."""
+INDUCTOR_CONFIG = {"max_fusion_size": 512, "size_asserts": False}
+"""Inductor settings every kernel is compiled with (part of the artifact key).
+
+- ``max_fusion_size``: the exit walk's call unrolls EXIT_STEPS_PER_CALL steps; with inductor's
+  default (64 nodes) it emits about one loop over the lane arrays per step, and the step is
+  bound by the memory traffic of those passes.  512 lets the unrolled steps fuse into fewer
+  loops: paired on a 2-core Xeon (AVX-512), exit walk M1 +37-46 %, M2 +13-22 %, hybrid M1
+  +38-51 % steps per CPU-second; the same tables to the bit and about the same compile time
+  (BENCHMARKS.md).
+- ``size_asserts`` off: the generated code would check the size and stride of every input on
+  every call (~1 us each: ~25 us per harvest call with the 23 lane fields, 7 % of an M2 harvest
+  call), which :class:`_Kernel` has already matched against the variant's signature before it
+  calls the compiled function directly."""
 
 
 def cache_dir() -> Path | None:
