@@ -104,7 +104,8 @@ INDUCTOR_CONFIG = {"max_fusion_size": 512, "size_asserts": False}
 - ``size_asserts`` off: the generated code would check the size and stride of every input on
   every call (~1 us each: ~25 us per harvest call with the 23 lane fields, 7 % of an M2 harvest
   call), which :class:`_Kernel` has already matched against the variant's signature before it
-  calls the compiled function directly."""
+  calls the compiled function directly (a signature's first call goes through the variant's own
+  guards, which check them)."""
 
 
 def cache_dir() -> Path | None:
