@@ -11,7 +11,7 @@ import torch
 from workers.walk.hybrid import photon_entries
 from workers.run.plan import ShardPlan
 from workers.run.shard import _Runner
-from workers.fold.tally import PhotonAccumulator, photon_moments
+from workers.fold.tally import PhotonAccumulator, TallyLayout, entry_square_keys, fold_square_totals, photon_moments
 from workers.walk.walk import EMPTY, RUNNING
 
 
@@ -37,8 +37,9 @@ def test_photon_moments_square_each_photons_sum_per_entry():
 
 
 def test_hybrid_kernel_squares_per_photon(walk_spec):
-    """photon_entries' weights, summed per key, are the brute-force per-photon squares of its
-    own entries, for every level and component (finished photons of a real eager walk)."""
+    """photon_entries' compact squares, summed per key and completed by fold_square_totals, are
+    the brute-force per-photon squares of its own entries, for every level and component
+    (finished photons of a real eager walk)."""
     spec = walk_spec(0.1, 0.9, g=0.5, eta=1.3, n_r=3, max_mm=3.0, n_theta=2, n_cos=2, n_phi=2, incidence_deg=[30.0],
                      photons=300, shards=1, batches_per_shard=2, estimator="hybrid", seed=4)  # fmt: skip
     plan = ShardPlan.build(spec, 0)
@@ -52,11 +53,39 @@ def test_hybrid_kernel_squares_per_photon(walk_spec):
         idx = torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1)
         assert len(idx) > 50
         flat2, g, s, key, weight = (v.numpy() for v in photon_entries(idx, runner.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout))
-    size = int(plan.entry_layout.square_offsets[-1]) + 3 * plan.cfgs.n
+    layout = runner.photons.layout
+    size = int(layout.square_offsets[-1])
+    assert key.shape == weight.shape == (3 * (g.shape[1] + 1) + 3, len(idx))  # 18 values a photon at E = 4, not 8 E
     values = np.stack([g, s, g, g, g, s, g, g])
-    got = np.bincount(key.reshape(-1), weights=weight.reshape(-1), minlength=size)
-    np.testing.assert_allclose(got, _brute_squares(key, values, size), rtol=1e-12, atol=1e-300)
+    want = _brute_squares(entry_square_keys(flat2, layout), values, size)
+    # A photon's entries share keys: several samples in one bin, and the exit with samples at the total level.
+    assert (want > 0).sum() > 20
+    got = fold_square_totals(np.bincount(key.reshape(-1), weights=weight.reshape(-1), minlength=size), layout)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-300)
+    acc = PhotonAccumulator(["hybrid"], plan.cfgs.n, plan.layout.shape)  # the accumulator folds each block alike
+    acc.add_photons("hybrid", flat2, g, s, key, weight)
+    acc.add_photons("hybrid", flat2, g, s, key, weight)
+    np.testing.assert_allclose(acc.squares["hybrid"], 2.0 * want, rtol=1e-12, atol=1e-300)
     assert np.all(g[:, :-1] >= 0) and (g[:, :-1] > 0).any() and flat2.shape == g.shape
+
+
+def test_entry_square_keys_index_each_level_and_component_of_the_entry():
+    """entry_square_keys against the histograms' own shapes: the key of an entry is its
+    [cfg, component or total, spatial (ring), direction] cell, offset into its region."""
+    layout = TallyLayout(n_cfg=2, hist_shape=(4, 3, 2, 5))  # n_r + 1 = 4 rings, 3 theta_s, 2 x 5 directions
+    rng = np.random.default_rng(8)
+    cfg, comp = rng.integers(0, 2, size=(30, 4)), rng.integers(0, 2, size=(30, 4))
+    ring, theta, cos, phi = (rng.integers(0, n, size=(30, 4)) for n in (4, 3, 2, 5))
+    flat2 = np.ravel_multi_index((cfg, comp, ring, theta, cos, phi), (2, 2, 4, 3, 2, 5))
+    keys = entry_square_keys(flat2, layout)
+    o = layout.square_offsets
+    for half, c in ((0, comp), (1, np.full_like(comp, 2))):
+        bins = np.ravel_multi_index((cfg, c, ring, theta, cos, phi), (2, 3, 4, 3, 2, 5))
+        np.testing.assert_array_equal(keys[4 * half + 0], o[0] + bins)
+        np.testing.assert_array_equal(keys[4 * half + 1], o[1] + bins)
+        np.testing.assert_array_equal(keys[4 * half + 2], o[2] + np.ravel_multi_index((cfg, c, ring), (2, 3, 4)))
+        np.testing.assert_array_equal(keys[4 * half + 3], o[3] + np.ravel_multi_index((cfg, c), (2, 3)))
+    assert o[4] == 2 * 2 * 3 * 4 * 3 * 10 + 2 * 3 * 4 + 2 * 3
 
 
 def test_zero_weight_exits_are_no_events():

@@ -129,7 +129,7 @@ class MemberTallies:
 
     def add_hybrid(self, flat2: np.ndarray, g: np.ndarray, s: np.ndarray, key: np.ndarray, nscat: np.ndarray) -> None:
         """The hybrid's entries of one block ([P, E]: E - 1 first-vertex samples, then the
-        multiple-scattering exit) with their square keys [8, P, E] (workers.walk.hybrid.photon_entries:
+        multiple-scattering exit) with their square keys [8, P, E] (workers.fold.tally.entry_square_keys:
         the values of the 8 key sets are g, s, g, g, g, s, g, g).
 
         Member j scales the first-vertex entries by r_j = a_j / a_w and the exit by r_j^n.  Its

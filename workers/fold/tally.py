@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["BATCH_ESTIMATORS", "BatchAccumulator", "PhotonAccumulator", "TallyLayout", "ShardTally", "QUANTITIES", "photon_moments", "units_name"]
+__all__ = ["BATCH_ESTIMATORS", "BatchAccumulator", "PhotonAccumulator", "TallyLayout", "ShardTally", "QUANTITIES", "entry_square_keys",
+           "fold_square_totals", "photon_moments", "units_name"]
 
 QUANTITIES = ("bins_G", "bins_S", "radial_G", "Rd", "absorbed", "truncated")
 """Per estimator: bins_G / bins_S [cfg, comp3, n_r+1, n_theta, n_cos, n_phi] (sum of w and of
@@ -95,6 +96,33 @@ class TallyLayout:
         return {"bins": (self.n_cfg, 3, *self.hist_shape), "radial": (self.n_cfg, 3, self.n_r1), "Rd": (self.n_cfg, 3)}
 
 
+def fold_square_totals(sq: np.ndarray, layout: TallyLayout) -> np.ndarray:
+    """Complete the squares histogram of the hybrid's compact entries, in place: in every
+    square_parts region [n_cfg, 3 components, ...] the total component holds only the cross terms
+    of a photon's single and multiple entries (workers.walk.hybrid.photon_entries); adding the
+    components' squares makes it the per-photon squares of the total.  Returns sq."""
+    for a, b in zip(layout.square_offsets[:-1], layout.square_offsets[1:]):
+        region = sq[a:b].reshape(layout.n_cfg, 3, -1)
+        region[:, 2] += region[:, 0] + region[:, 1]
+    return sq
+
+
+def entry_square_keys(flat2: np.ndarray, layout: TallyLayout) -> np.ndarray:
+    """[8, P, E]: the square keys of the entries flat2 [P, E] ([cfg, comp (0/1), spatial,
+    direction]) in the regions bins_G, bins_S, radial_G, Rd, first for the entry's component and
+    then for the total (component 2): the keys whose per-photon sums of G, S, G, G, G, S, G, G are
+    squared (workers.fold.reweight's members square their reweighted entries with them)."""
+    o_bins_g, o_bins_s, o_radial, o_rd = (int(o) for o in layout.square_offsets[:4])
+    direction, rest = flat2 % layout.n_dir, flat2 // layout.n_dir
+    spatial, rest = rest % layout.n_sp, rest // layout.n_sp
+    comp, cfg = rest % 2, rest // 2
+    keys = []
+    for c3 in (comp, np.full_like(comp, 2)):
+        bins = ((cfg * 3 + c3) * layout.n_sp + spatial) * layout.n_dir + direction
+        keys += [bins + o_bins_g, bins + o_bins_s, (cfg * 3 + c3) * layout.n_r1 + spatial // layout.n_theta + o_radial, cfg * 3 + c3 + o_rd]
+    return np.stack(keys)
+
+
 class PhotonAccumulator:
     """Per-photon moments of one shard (exit tally, hybrid estimator, walk totals).
 
@@ -128,8 +156,9 @@ class PhotonAccumulator:
     def add_photons(self, estimator: str, flat2: np.ndarray, g: np.ndarray, s: np.ndarray, square_key: np.ndarray, square_weight: np.ndarray) -> None:
         """Entries of several per photon (workers.walk.hybrid.photon_entries): flat2 [cfg, comp (0/1),
         spatial, direction], G and S contributions (0 for an absent entry), and the keys and
-        weights whose sums per key are the per-photon squares of every level (square_parts
-        regions; see :func:`photon_moments`)."""
+        weights of the photons' compact squares, whose sums per key with the components added to
+        the total (:func:`fold_square_totals`) are the per-photon squares of every level
+        (square_parts regions; see :func:`photon_moments`)."""
         acc = self.linear[estimator]
         # Entries are summed in memory order (ravel "K": no copy of the kernel's entry-major
         # arrays); the arrays of one call share their layout, so values stay with their keys.
@@ -137,6 +166,7 @@ class PhotonAccumulator:
         for row, w in ((0, g), (2, s), (4, (g != 0.0).astype(np.float64))):  # rows 1, 3 unused: squares kept below
             acc[row] += np.bincount(f, weights=w, minlength=acc.shape[1])
         sq = np.bincount(square_key.ravel("K"), weights=square_weight.ravel("K"), minlength=int(self.layout.square_offsets[-1]))
+        fold_square_totals(sq, self.layout)
         if estimator in self.squares:
             self.squares[estimator] += sq
         else:

@@ -27,7 +27,7 @@ from workers.walk.hybrid import entries_function
 from workers.walk.path_roulette import check_steps_per_call
 from workers.fold.reweight import MemberTallies, member_prefix
 from .plan import DEEP_TAIL_AFTER, EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
-from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally
+from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally, entry_square_keys
 from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
 __all__ = ["run_shard"]
@@ -224,7 +224,7 @@ class _Runner:
         for flat2, g, s, key, weight, nscat in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1, 0)):
             self.photons.add_photons("hybrid", flat2, g, s, key, weight)
             if self.members is not None:
-                self.members.add_hybrid(flat2, g, s, key, nscat)
+                self.members.add_hybrid(flat2, g, s, entry_square_keys(np.ascontiguousarray(flat2), self.photons.layout), nscat)
 
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""

@@ -208,13 +208,24 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     Per photon E = k + 2 entries: the k uniform and the phase first-vertex samples (single) and
     the exit if it scattered two or more times (multiple; G = S = 0 otherwise).  Returns
     (flat2, G, S) [P, E] with flat2 the index [cfg, comp (0/1), spatial, direction], and
-    (square_key, square_weight) [8, P, E]: for bins_G, bins_S, radial_G, Rd, each for the entry's
-    component and for total, the key into the squares histogram and x (x + 2 sum of the later
-    entries of the photon with the same key): summed per key, the sum over photons of the
-    photon's squared contribution (workers.fold.tally.photon_moments, here fused into the kernel).
-    The results are views of entry-major storage ([E, P] and [8, E, P]): computed as columns
-    over the photons, the kernel is one vectorized loop (built as [P, E], inductor emitted
-    scalar loops for the short entry axis and ran 25 % slower).
+    (square_key, square_weight) [Q, P]: keys into the squares histogram (bins_G, bins_S,
+    radial_G and Rd, each with the components single, multiple and total: the square_offsets
+    regions) and values which, summed per key and completed by :func:`workers.fold.tally.fold_square_totals`,
+    are the sum over photons of the photon's squared contribution at every key.
+
+    A photon's squares split by component: its single entries share keys only among themselves
+    (x_j (x_j + 2 sum of the later single x_l with the key of x_j), as in
+    :func:`workers.fold.tally.photon_moments`), its exit is alone in the multiple component
+    (x_e^2), and at the total level (sum_j x_j + x_e)^2 = the single part + x_e^2 + 2 x_e sum
+    of the single x_j in the exit's bin.  So the total level needs one cross term per level
+    (at the exit's total key), the components' squares being added to it once per block:
+    Q = 3 (E + 1) + 3 values per photon, where squaring every entry at every level and component
+    took 8 E (18 against 32 at E = 4; bincounting them was the hybrid's largest Python cost).
+    Rd's single part is one value, (sum of the single G)^2.
+
+    The results are contiguous along the photons (flat2, G and S are views of [E, P] storage):
+    computed as columns over the photons, the kernel is one vectorized loop (built as [P, E],
+    inductor emitted scalar loops for the short entry axis and ran 25 % slower).
     """
     cfg = lanes.cfg[idx]
     cols = _first_vertex_columns(lanes.photon[idx], cfg, geo)
@@ -226,29 +237,37 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     g = [c[2].double() for c in cols] + [torch.where(keep, ge, 0.0)]
     s = [c[3].double() for c in cols] + [torch.where(keep, se, 0.0)]
     e = len(spatial)
-    comp = [0] * (e - 1) + [1]
+    ns = e - 1  # the single entries; entry ns is the exit
+    comp = [0] * ns + [1]
     flat2 = [histogram_index(cfg, comp[j], spatial[j], direction[j], lay.n_sp, lay.n_dir) for j in range(e)]
     o_bins_g, o_bins_s, o_radial, o_rd = lay.square_offsets
     n_r1 = lay.n_sp // lay.n_theta
-    keys, values = [], []  # 8 key sets, each E columns
-    for total in (False, True):
-        c3 = [2] * e if total else comp
-        b = [histogram_index(cfg, c3[j], spatial[j], direction[j], lay.n_sp, lay.n_dir, n_comp=3) for j in range(e)]
-        keys += [[x + o_bins_g for x in b], [x + o_bins_s for x in b],
-                 [(cfg * 3 + c3[j]) * n_r1 + torch.div(spatial[j], lay.n_theta, rounding_mode="floor") + o_radial for j in range(e)],
-                 [cfg * 3 + c3[j] + o_rd for j in range(e)]]  # fmt: skip
-        values += [g, s, g, g]
-    weights = []  # x_j (x_j + 2 sum of the later x_i with the same key), summed in entry order
-    for key, value in zip(keys, values):
-        for j in range(e):
-            cross = sum((torch.where(key[i] == key[j], value[i], 0.0) for i in range(j + 1, e)), torch.zeros_like(value[j]))
+    bins3 = lambda c, j: histogram_index(cfg, c, spatial[j], direction[j], lay.n_sp, lay.n_dir, n_comp=3)  # noqa: E731
+    levels = (  # (key of component c for entry j, values)
+        (lambda c, j: bins3(c, j) + o_bins_g, g),
+        (lambda c, j: bins3(c, j) + o_bins_s, s),
+        (lambda c, j: (cfg * 3 + c) * n_r1 + torch.div(spatial[j], lay.n_theta, rounding_mode="floor") + o_radial, g),
+    )
+    zero = torch.zeros_like(g[0])
+    keys, weights = [], []
+    for key_of, value in levels:
+        single = [key_of(0, j) for j in range(ns)]
+        for j in range(ns):
+            cross = sum((torch.where(single[i] == single[j], value[i], 0.0) for i in range(j + 1, ns)), zero)
+            keys.append(single[j])
             weights.append(value[j] * (value[j] + 2.0 * cross))
-    # Stored entry-major ([E, P], contiguous along the photons, so every loop vectorizes; one
-    # stack each, nested stacks cost a copy) and returned as [P, E] views.
-    n = idx.shape[0]
-    square_key = torch.stack([x for k in keys for x in k]).view(len(keys), e, n)
-    return (torch.stack(flat2).T, torch.stack(g).T, torch.stack(s).T, square_key.transpose(1, 2),
-            torch.stack(weights).view(len(keys), e, n).transpose(1, 2))  # fmt: skip
+        x_e = value[ns]
+        keys.append(key_of(1, ns))
+        weights.append(x_e * x_e)
+        at_exit = key_of(0, ns)  # the exit's bin in the single component: equal keys = one total bin
+        shared = sum((torch.where(single[j] == at_exit, value[j], 0.0) for j in range(ns)), zero)
+        keys.append(key_of(2, ns))
+        weights.append(2.0 * x_e * shared)
+    g_single, g_e = sum(g[:ns], zero), g[ns]
+    keys += [cfg * 3 + c + o_rd for c in range(3)]
+    weights += [g_single * g_single, g_e * g_e, 2.0 * g_e * g_single]
+    # Entry-major storage ([E, P], contiguous along the photons, so every loop vectorizes).
+    return (torch.stack(flat2).T, torch.stack(g).T, torch.stack(s).T, torch.stack(keys), torch.stack(weights))
 
 
 @lru_cache(maxsize=None)
