@@ -224,7 +224,7 @@ class _Runner:
         for flat2, g, s, key, weight, nscat in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1, 0)):
             self.photons.add_photons("hybrid", flat2, g, s, key, weight)
             if self.members is not None:
-                self.members.add_hybrid(flat2, g, s, entry_square_keys(np.ascontiguousarray(flat2), self.photons.layout), nscat)
+                self.members.add_hybrid(flat2, g, s, entry_square_keys(flat2, self.photons.layout), nscat)
 
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
