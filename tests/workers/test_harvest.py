@@ -147,14 +147,15 @@ def test_exit_bins_match_the_reference_lookups():
 HARVEST_N, HARVEST_CFG, HARVEST_BLOCK = 4000, 3, 512
 
 
-def _harvest(lanes: dict, compiled: bool, launches_short: int = 100, exits: bool = True):
+def _harvest(lanes: dict, compiled: bool, launches_short: int = 100, exits: bool = True, members: bool = True):
     """The shard runner's harvest on `lanes` (plus a scratch lane): harvest_block over blocks of
     the lanes not running, the last padded with the scratch lane.  Returns the lanes after, the
-    records concatenated, the free lanes, the config table and launch = (start, next, end)."""
+    records by name (harvest_fields) concatenated over the blocks (steps: summed), the free
+    lanes, the config table and launch = (start, next, end)."""
     from workers.measure.bench import _spec
     from workers.fold.configs import build_configs
     from workers.run.plan import config_table
-    from workers.walk.harvest import harvest_function
+    from workers.walk.harvest import harvest_fields, harvest_function
 
     n = len(lanes["x"])
     full = _as_lanes({k: torch.cat((v, v[:1])) for k, v in lanes.items()})  # lane n: the scratch lane
@@ -162,7 +163,8 @@ def _harvest(lanes: dict, compiled: bool, launches_short: int = 100, exits: bool
     table = config_table(spec, build_configs(spec))
     idx = torch.nonzero(lanes["status"] != RUNNING).squeeze(1)
     start, nxt, end = 5000, 7, 7 + len(idx) - launches_short
-    fn, bins = harvest_function(compiled, exits), _bins()[0]
+    fn, bins = harvest_function(compiled, exits, members), _bins()[0]
+    names = harvest_fields(exits, members)
     outs = []
     with torch.no_grad():
         for a in range(0, len(idx), HARVEST_BLOCK):
@@ -170,8 +172,11 @@ def _harvest(lanes: dict, compiled: bool, launches_short: int = 100, exits: bool
             m = len(block)
             block = torch.cat((block, torch.full((HARVEST_BLOCK - m,), n, dtype=torch.int64)))
             launch = torch.tensor([start, nxt + a, end, HARVEST_CFG])
-            outs.append([v[:m] for v in fn(block, torch.tensor(m), full, table, launch, bins)])
-    return full, [torch.cat(v) for v in zip(*outs)], idx, table, (start, nxt, end)
+            out = fn(block, torch.tensor(m), full, table, launch, bins)
+            assert len(out) == len(names)
+            outs.append([v if name == "steps" else v[:m] for name, v in zip(names, out)])
+    records = {name: (sum(v) if name == "steps" else torch.cat(v)) for name, v in zip(names, zip(*outs))}
+    return full, records, idx, table, (start, nxt, end)
 
 
 def test_harvest_block_records_lanes_and_refills_them_in_lane_order():
@@ -188,7 +193,7 @@ def test_harvest_block_records_lanes_and_refills_them_in_lane_order():
     lanes = _lanes(HARVEST_N, bins, seed=17)
     before = {name: value.clone() for name, value in lanes.items()}
     full, rec, idx, table, (start, nxt, end) = _harvest(lanes, compiled=False)
-    flat, g, s, key, absorbed, truncated, steps, status, nscat, w = rec
+    flat, g, s, key, absorbed, truncated, steps, status, nscat, w = (rec[k] for k in ("flat", "g", "s", "key", "absorbed", "truncated", "steps", "status", "nscat", "w"))
     n_cfg, st = HARVEST_CFG, before["status"][idx]
     done = (st != RUNNING) & (st != EMPTY)
     assert len(idx) > 2000 and int(done.sum()) > 1000 and int((st == EMPTY).sum()) > 300
@@ -197,7 +202,7 @@ def test_harvest_block_records_lanes_and_refills_them_in_lane_order():
     assert torch.equal(key, torch.where(done, batch * n_cfg + before["cfg"][idx], len(STARTS) * n_cfg))
     assert torch.equal(absorbed, torch.where(done, before["absorbed"][idx].double(), 0.0))
     assert torch.equal(truncated, torch.where(st == TRUNCATED, before["w"][idx].double(), 0.0))
-    assert torch.equal(steps, torch.where(done, before["step"][idx], 0))
+    assert steps.dtype == torch.int64 and int(steps) == int(before["step"][idx][done].sum())
     assert torch.equal(status, st) and torch.equal(nscat, before["nscat"][idx]) and torch.equal(w, before["w"][idx])
     ex = st == EXITED
     ref_flat, _, ref_g, ref_s = exit_bins(idx[ex], _as_lanes(before), bins)
@@ -221,14 +226,22 @@ def test_harvest_block_records_lanes_and_refills_them_in_lane_order():
     assert int(full.status[HARVEST_N]) == int(before["status"][0])  # the scratch lane's status is never written
 
 
-def test_harvest_without_the_exit_tally_records_and_refills_the_same_with_no_entries():
-    """A run without the exit tally (the hybrid alone) skips the exit lookup: every other record
-    and every lane after the refill are those of the full harvest, the entries are zeros."""
+@pytest.mark.parametrize("exits, members", [(False, True), (True, False), (False, False)])
+def test_harvest_without_the_exit_tally_or_members_records_and_refills_the_same_with_fewer_records(exits, members):
+    """A run without the exit tally (the hybrid alone) skips the exit lookup and one without
+    reweighted members their records: the kernel returns only harvest_fields(exits, members),
+    each equal to the full harvest's, and every lane after the refill is the full harvest's."""
+    from workers.walk.harvest import harvest_fields
+
     lanes = _lanes(HARVEST_N, _bins()[0], seed=23)
     full, rec, _, _, _ = _harvest({k: v.clone() for k, v in lanes.items()}, compiled=False)
-    bare, rec_bare, _, _, _ = _harvest({k: v.clone() for k, v in lanes.items()}, compiled=False, exits=False)
-    assert all(torch.equal(a, b) for a, b in zip(rec[3:], rec_bare[3:]))
-    assert (rec[0] != 0).any() and all(bool((v == 0).all()) for v in rec_bare[:3])
+    bare, rec_bare, _, _, _ = _harvest({k: v.clone() for k, v in lanes.items()}, compiled=False, exits=exits, members=members)
+    assert list(rec) == ["flat", "g", "s", "key", "absorbed", "truncated", "steps", "status", "nscat", "w"]
+    assert set(rec_bare) == {"key", "absorbed", "truncated", "steps"} | ({"flat", "g", "s"} if exits else set()) | (
+        {"status"} if exits or members else set()) | ({"nscat", "w"} if members else set())  # fmt: skip
+    assert list(rec_bare) == list(harvest_fields(exits, members))
+    assert all(torch.equal(rec[name], value) for name, value in rec_bare.items())
+    assert (rec["flat"] != 0).any() and (rec["g"] != 0).any()
     assert all(torch.equal(a, b) for a, b in zip(full.tensors(), bare.tensors()))
 
 
@@ -243,9 +256,9 @@ torch.set_num_threads(1)
 lanes = _lanes(4000, _bins()[0], seed=13)
 eager, rec_e, _, _, _ = _harvest({k: v.clone() for k, v in lanes.items()}, compiled=False)
 compiled, rec_c, _, _, _ = _harvest({k: v.clone() for k, v in lanes.items()}, compiled=True)
-same = [bool(torch.equal(a, b)) for a, b in zip(rec_e, rec_c)]
+same = [bool(torch.equal(rec_e[k], rec_c[k])) for k in rec_e]
 same_lanes = [f.name for f in fields(Lanes) if not torch.equal(getattr(eager, f.name)[:4000], getattr(compiled, f.name)[:4000])]
-print(json.dumps([same, same_lanes, float(((rec_c[2] - rec_e[2]) / torch.where(rec_e[2] == 0, 1.0, rec_e[2])).abs().max())]))
+print(json.dumps([same, same_lanes, float(((rec_c["s"] - rec_e["s"]) / torch.where(rec_e["s"] == 0, 1.0, rec_e["s"])).abs().max())]))
 """
 
 

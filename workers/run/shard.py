@@ -22,7 +22,7 @@ from schema import SimulationSpec
 from workers.walk.binning import histogram_index
 from workers.walk.connections import Vertices, VertexBuffer, connection_function
 from workers.walk.engine import init_engine
-from workers.walk.harvest import harvest_function
+from workers.walk.harvest import harvest_fields, harvest_function
 from workers.walk.hybrid import entries_function
 from workers.walk.path_roulette import check_steps_per_call
 from workers.fold.reweight import MemberTallies, member_prefix
@@ -38,16 +38,17 @@ class _Kernels:
     """The (compiled or eager) functions a shard run calls, chosen once from its plan."""
 
     step: Callable  # steps a chunk of lanes in place (workers.walk.walk.step_function)
-    harvest: Callable  # records lanes not running and refills them (workers.walk.harvest.harvest_block)
+    harvest: Callable  # records lanes not running and refills them (workers.walk.harvest.harvest_block): harvest_fields(exits, members)
     entries: Callable  # the hybrid's entries per photon (workers.walk.hybrid.photon_entries)
     connect: Callable  # both connection techniques for a chunk of vertices
 
     @classmethod
-    def for_plan(cls, plan: ShardPlan, wrap: Callable[[str, Callable], Callable] | None = None) -> "_Kernels":
-        """The plan's kernels; wrap(name, kernel), if given, replaces each (a profiler's timer)."""
+    def for_plan(cls, plan: ShardPlan, members: bool, wrap: Callable[[str, Callable], Callable] | None = None) -> "_Kernels":
+        """The plan's kernels (members: the walk has reweighted members); wrap(name, kernel), if
+        given, replaces each (a profiler's timer)."""
         c = plan.compiled
         kernels = cls(
-            step=step_function(plan.params, plan.n_steps, plan.connect, c), harvest=harvest_function(c, "exits" in plan.estimators),
+            step=step_function(plan.params, plan.n_steps, plan.connect, c), harvest=harvest_function(c, "exits" in plan.estimators, members),
             entries=entries_function(c), connect=connection_function(c),
         )  # fmt: skip
         if wrap is None:
@@ -72,7 +73,8 @@ class _Runner:
     def __init__(self, plan: ShardPlan, progress: Callable[[int], None] | None, members: tuple[float, ...] = (),
                  wrap_kernels: Callable[[str, Callable], Callable] | None = None):
         self.plan, self.progress = plan, progress
-        self.kernels = _Kernels.for_plan(plan, wrap_kernels)
+        self.kernels = _Kernels.for_plan(plan, bool(members), wrap_kernels)
+        self.harvest_fields = harvest_fields("exits" in plan.estimators, bool(members))
         self.count = _Counters()
         batch_estimators = [e for e in plan.estimators if e in BATCH_ESTIMATORS]
         photon_estimators = [e for e in plan.estimators if e not in BATCH_ESTIMATORS]
@@ -109,6 +111,8 @@ class _Runner:
         plan, L = self.plan, self.lanes
         launched = min(len(idx), plan.n_launch - self.next_launch)
         outs = []
+        names = self.harvest_fields
+        at_steps = names.index("steps")
         for a in range(0, len(idx), HARVEST_BLOCK):
             block = idx[a : a + HARVEST_BLOCK]
             m = len(block)
@@ -117,23 +121,25 @@ class _Runner:
             self.launch[1] = self.next_launch + a  # written in place: building two small tensors a block cost ~1 % of a short walk
             self.n_valid.fill_(m)
             out = self.kernels.harvest(block, self.n_valid, L, plan.table, self.launch, plan.exit_bins)
-            outs.append([v[:m].numpy() for v in out])
+            self.count.photon_steps += int(out[at_steps])
+            outs.append([v[:m].numpy() for i, v in enumerate(out) if i != at_steps])
         self.next_launch += launched
         if not outs:
             return 0, launched
-        flat, g, s, key, absorbed, truncated, steps, status, nscat, w = (np.concatenate(v) for v in zip(*outs))
-        self.count.photon_steps += int(steps.sum())
+        rec = dict(zip((n for n in names if n != "steps"), (np.concatenate(v) for v in zip(*outs))))
+        key, absorbed, truncated = rec["key"], rec["absorbed"], rec["truncated"]
         done = key < len(self.acc.sizes) * plan.cfgs.n
         cfg = key[done] % plan.cfgs.n
         self.photons.add_walk(cfg, absorbed[done], truncated[done])
-        ex = status == EXITED
         if "exits" in plan.estimators:
-            self.photons.add_exits("exits", flat[ex], g[ex], s[ex])
+            ex = rec["status"] == EXITED
+            flat, g, s = rec["flat"][ex], rec["g"][ex], rec["s"][ex]
+            self.photons.add_exits("exits", flat, g, s)
+            if self.members is not None:
+                self.members.add_exits(flat, g, s, rec["nscat"][ex])
         if self.members is not None:
-            if "exits" in plan.estimators:
-                self.members.add_exits(flat[ex], g[ex], s[ex], nscat[ex])
-            st = status[done]
-            self.members.add_walk(cfg, st == EXITED, st == TRUNCATED, w[done], nscat[done])
+            st = rec["status"][done]
+            self.members.add_walk(cfg, st == EXITED, st == TRUNCATED, rec["w"][done], rec["nscat"][done])
         return self.acc.finish_photons(key), launched
 
     def fill(self) -> int:

@@ -63,7 +63,7 @@ from .kernels import compile_kernel
 from .optics import refracted_cos
 from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_at
 
-__all__ = ["ExitBins", "batch_index", "count_le", "exit_bins", "harvest_block", "harvest_function"]
+__all__ = ["ExitBins", "batch_index", "count_le", "exit_bins", "harvest_block", "harvest_fields", "harvest_function"]
 
 
 @dataclass(frozen=True)
@@ -147,8 +147,17 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     return flat, batch, wd, wd / cos_o
 
 
+def harvest_fields(exits: bool = True, members: bool = True) -> tuple[str, ...]:
+    """Names of the records :func:`harvest_block` returns, in order: the exit entries only with
+    the exit tally, the lane's status where exits or members read it, its scattering count and
+    weight only for reweighted members.  A kernel writes every array it returns, read or not
+    (the step's unused vertex arrays once cost a fifth of an M2 step call)."""
+    return (*(("flat", "g", "s") if exits else ()), "key", "absorbed", "truncated", "steps",
+            *(("status",) if exits or members else ()), *(("nscat", "w") if members else ()))  # fmt: skip
+
+
 def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table: ConfigTable, launch: torch.Tensor, bins: ExitBins,
-                  exits: bool = True):
+                  exits: bool = True, members: bool = True):
     """Record the photons of lanes idx and refill those lanes: the harvest's work per lane that
     is not running, not per lane of the array.
 
@@ -156,13 +165,16 @@ def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table:
     padding that points at a scratch lane beyond the stepped ones; launch = int64 [start photon,
     launch number of position 0, launches in the shard, configurations].  Position j records,
     before the refill:
-    - flat, G, S: the exit tally's entry (:func:`exit_bins`) if the lane EXITED, else flat 0 and
-      G = S = 0, which leave every sum of the tally as it is (always these where ``exits`` is
-      False: a run without the exit tally -- the hybrid makes its own entries -- skips the lookup);
+    - flat, G, S (only with ``exits``): the exit tally's entry (:func:`exit_bins`) if the lane
+      EXITED, else flat 0 and G = S = 0, which leave every sum of the tally as it is (a run
+      without the exit tally -- the hybrid makes its own entries -- skips the lookup);
     - key = batch * n_cfg + cfg of a finished photon (EXITED, ABSORBED or TRUNCATED), else
       n_batches * n_cfg (a spare slot); its absorbed weight and its truncated weight (float64, 0
-      for lanes not finished); steps: its interaction steps (0 if not finished);
-    - status, nscat, w: the lane's state, for reweighted members (workers.fold.reweight).
+      for lanes not finished); steps: the interaction steps of the block's finished photons
+      (an int64 scalar: an integer sum, the same in any order);
+    - status (with ``exits`` or ``members``), nscat and w (with ``members``): the lane's state,
+      for the exit tally and reweighted members (workers.fold.reweight).
+    The records are returned in the order of :func:`harvest_fields`.
     Then position j (valid) gets launch number q = launch[1] + j, photon start + q // n_cfg of
     configuration q % n_cfg, while q < launches; other valid lanes become EMPTY
     (:func:`workers.walk.walk.refill_at`): over a harvest's blocks, the k-th lane not running
@@ -181,27 +193,28 @@ def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table:
         g, s = torch.where(exited, g, 0.0), torch.where(exited, s, 0.0)
     else:
         batch = batch_index(lanes.photon[idx], bins.batch_starts)
-        flat, g = torch.zeros_like(idx), torch.zeros(idx.shape, dtype=torch.float64)
-        s = torch.zeros_like(g)
     key = torch.where(done, batch * n_cfg + lanes.cfg[idx], bins.batch_starts.shape[0] * n_cfg)
     absorbed = torch.where(done, lanes.absorbed[idx].double(), 0.0)
     w = lanes.w[idx]
     truncated = torch.where(valid & (status == TRUNCATED), w.double(), 0.0)
-    steps = torch.where(done, lanes.step[idx], 0)
-    nscat = lanes.nscat[idx]
+    steps = torch.where(done, lanes.step[idx], 0).sum(dtype=torch.int64)
+    records = {"key": key, "absorbed": absorbed, "truncated": truncated, "steps": steps, "status": status, "nscat": lanes.nscat[idx], "w": w}
+    if exits:
+        records.update(flat=flat, g=g, s=s)
+    out = tuple(records[name] for name in harvest_fields(exits, members))  # read before the refill writes the lanes
     q = nxt + pos
     new = valid & (q < n_launch)
     q = torch.where(new, q, 0)
     refill_at(lanes, table, idx, start + q // n_cfg, q % n_cfg, new, valid)
-    return flat, g, s, key, absorbed, truncated, steps, status, nscat, w
+    return out
 
 
 @lru_cache(maxsize=None)
-def harvest_function(compiled: bool, exits: bool = True):
-    """:func:`harvest_block` with or without the exit tally's lookup, compiled for one block
-    size (the caller pads) or eager."""
+def harvest_function(compiled: bool, exits: bool = True, members: bool = True):
+    """:func:`harvest_block` with or without the exit tally's lookup and the members' records
+    (:func:`harvest_fields`), compiled for one block size (the caller pads) or eager."""
 
     def fn(idx, n_valid, lanes, table, launch, bins):
-        return harvest_block(idx, n_valid, lanes, table, launch, bins, exits)
+        return harvest_block(idx, n_valid, lanes, table, launch, bins, exits, members)
 
-    return compile_kernel(fn, "harvest_block", (exits,)) if compiled else fn
+    return compile_kernel(fn, "harvest_block", (exits, members)) if compiled else fn
