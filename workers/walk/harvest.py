@@ -149,11 +149,11 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
 
 def harvest_fields(exits: bool = True, members: bool = True) -> tuple[str, ...]:
     """Names of the records :func:`harvest_block` returns, in order: the exit entries only with
-    the exit tally, the lane's status where exits or members read it, its scattering count and
-    weight only for reweighted members.  A kernel writes every array it returns, read or not
-    (the step's unused vertex arrays once cost a fifth of an M2 step call)."""
+    the exit tally, the lane's status, scattering count and weight only for reweighted members.
+    A kernel writes every array it returns, read or not (the step's unused vertex arrays once
+    cost a fifth of an M2 step call)."""
     return (*(("flat", "g", "s") if exits else ()), "key", "absorbed", "truncated", "steps",
-            *(("status",) if exits or members else ()), *(("nscat", "w") if members else ()))  # fmt: skip
+            *(("status", "nscat", "w") if members else ()))  # fmt: skip
 
 
 def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table: ConfigTable, launch: torch.Tensor, bins: ExitBins,
@@ -172,8 +172,8 @@ def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table:
       n_batches * n_cfg (a spare slot); its absorbed weight and its truncated weight (float64, 0
       for lanes not finished); steps: the interaction steps of the block's finished photons
       (an int64 scalar: an integer sum, the same in any order);
-    - status (with ``exits`` or ``members``), nscat and w (with ``members``): the lane's state,
-      for the exit tally and reweighted members (workers.fold.reweight).
+    - status, nscat and w (with ``members``): the lane's state, for reweighted members
+      (workers.fold.reweight).
     The records are returned in the order of :func:`harvest_fields`.
     Then position j (valid) gets launch number q = launch[1] + j, photon start + q // n_cfg of
     configuration q % n_cfg, while q < launches; other valid lanes become EMPTY
