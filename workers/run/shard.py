@@ -228,12 +228,13 @@ class _Runner:
     def tally_hybrid(self, idx: torch.Tensor) -> None:
         """The hybrid estimator's entries of the photons finished in lanes idx: the first-vertex
         connection samples (single) and the exit after two or more scatterings (multiple)."""
-        plan = self.plan
-        fn = lambda b: (*self.kernels.entries(b, self.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout), self.lanes.nscat[b])  # noqa: E731
-        for flat2, g, s, key, weight, nscat in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1, 0)):
+        plan, members = self.plan, self.members is not None
+        entries = lambda b: self.kernels.entries(b, self.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout)  # noqa: E731
+        fn = (lambda b: (*entries(b), self.lanes.nscat[b])) if members else entries  # the members reweight by the scattering count
+        for flat2, g, s, key, weight, *nscat in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1, 0)):
             self.photons.add_photons("hybrid", flat2, g, s, key, weight)
-            if self.members is not None:
-                self.members.add_hybrid(flat2, g, s, entry_square_keys(flat2, self.photons.layout), nscat)
+            if members:
+                self.members.add_hybrid(flat2, g, s, entry_square_keys(flat2, self.photons.layout), nscat[0])
 
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
