@@ -93,6 +93,15 @@ def _live_state(driver) -> tuple[str, str]:
         "var s = document.getElementById('live'); return [s.dataset.live, s.querySelector('.state').textContent];"))
 
 
+def _stopped(proc: subprocess.Popen) -> bool:
+    """Whether proc has stopped (SIGSTOP); AssertionError if it exited instead."""
+    pid, status = os.waitpid(proc.pid, os.WUNTRACED | os.WNOHANG)
+    if pid == 0:
+        return False
+    assert os.WIFSTOPPED(status), f"the worker exited (status {status}) instead of stopping"
+    return True
+
+
 def test_a_sweep_from_submission_to_its_figures_and_exports(service):
     base, start_worker = service
     job = httpx.post(f"{base}/v1/jobs", json={"spec": SWEEP}, headers=AUTH, timeout=30).json()
@@ -104,6 +113,10 @@ def test_a_sweep_from_submission_to_its_figures_and_exports(service):
         # The walk of 400 photons takes less than the page's poll, so the worker stops itself with
         # the tables staged (service/faults.py) until the page has shown the job under way.
         worker = start_worker(BSSRDF_TEST_PAUSE_AT="staged")
+        # The page shows "merging" from the merge task's claim on, before the worker reaches the
+        # staged tables and stops: continue it only once it has stopped (a SIGCONT sent before the
+        # stop is lost and leaves the worker stopped for good).
+        wait_for(lambda: _stopped(worker), 240, "the worker to stop with the tables staged", poll=0.05)
         wait_for(lambda: _live_state(driver)[1] == "merging", 240, "the job page to show the merge under way",
                  poll=0.25)
         os.kill(worker.pid, signal.SIGCONT)
