@@ -130,7 +130,7 @@ class _Runner:
         # Lanes that hold no finished photon (or no exit) have records of weight 0 (the spare key,
         # whose configuration is 0; flat 0): added to a sum they leave it as it is, bit for bit,
         # and they are no events (those count nonzero weights), so the tallies take every record
-        # without selecting (~4 % of a short walk's shard); the members select, to reweight.
+        # without selecting them first; the members select, to reweight.
         key = rec["key"]
         cfg = key % plan.cfgs.n
         self.photons.add_walk(cfg, rec["absorbed"], rec["truncated"])

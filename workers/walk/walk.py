@@ -246,8 +246,8 @@ def _step_inplace(lanes: Lanes, p: WalkParams, n_steps: int, want_vertices: bool
     for _ in range(n_steps):
         cur, vertex = walk_step(cur, p=p)
     # The arrival direction and weight are the old state, overwritten just below: copy them.  Not
-    # wanted, they are not returned at all: a returned tensor is written on every call (5 arrays
-    # per lane, ~12 % of the call's memory traffic) even if the caller drops it.
+    # wanted, they are not returned at all: a returned tensor is written on every call even if the
+    # caller drops it (these 5 arrays cost a fifth of an M2 exit-walk call, BENCHMARKS.md).
     vertex = tuple(v.clone() for v in vertex) if want_vertices else None
     if p.roulette is not None:  # the path-length round of the lanes due, after the vertices of the last step
         start, survival = p.roulette
