@@ -100,7 +100,7 @@ def _reference(lanes: dict, layout: BinLayout, channel: np.ndarray, bins: ExitBi
     ux, uy, uz = (lanes[k].double() for k in ("ux", "uy", "uz"))
     r_mm = torch.sqrt(x * x + y * y) / bins.sigma_t[cfg]
     ir = searched(layout).radial_index(r_mm, torch.from_numpy(channel)[cfg])
-    it = searched(layout).theta_index(torch.atan2(y, x))
+    it = searched(layout).theta_index(torch.where((x == 0) & (y == 0), 0.0, torch.atan2(y, x)))  # theta_s = 0 at r = 0
     cos_o = refracted_cos(uz, bins.inv_eta)  # > 0: exits refract out
     ic = searched(layout).cos_index(cos_o)
     ip = searched(layout).phi_index(outgoing_azimuth(x, y, ux, uy))

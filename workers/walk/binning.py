@@ -16,7 +16,7 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth", "histogram_index"]
+__all__ = ["wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth", "sector_index", "outgoing_azimuth_index", "histogram_index"]
 
 TWO_PI = 2.0 * math.pi
 
@@ -95,13 +95,66 @@ def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: t
     """phi_o in [0, 2 pi): azimuth of the horizontal direction (tx, ty) from the radial (px, py).
 
     Computed as atan2(p x t, p . t) so it is exact for parallel vectors; at r = 0 the radial
-    direction is +x by convention.
+    direction is +x by convention, and a direction with no horizontal part has phi_o = 0 (atan2
+    of signed zeros would give 0 or pi by the signs).  The walk bins phi_o with
+    :func:`outgoing_azimuth_index`, without the angle.
     """
     at_origin = (px == 0) & (py == 0)
     px = torch.where(at_origin, torch.ones_like(px), px)
     cross = px * ty - py * tx
     dot = px * tx + py * ty
-    return wrap_angle(torch.atan2(cross, dot))
+    return torch.where((cross == 0) & (dot == 0), 0.0, wrap_angle(torch.atan2(cross, dot)))
+
+
+SECTOR_MAX = 16
+"""Up to this many azimuth bins, :func:`sector_index` decides a direction's bin by one cross
+product per bin edge; beyond, by atan2 and :func:`azimuth_index`."""
+
+
+def sector_index(y: torch.Tensor, x: torch.Tensor, count: int) -> torch.Tensor:
+    """Bin of the direction (x, y) among ``count`` azimuth bins centred on 0, int64: the bin
+    :func:`azimuth_index` gives for atan2(y, x), decided without the angle.
+
+    Edge j = 1 .. count of the bins is the direction e_j at (j - 1/2) h, h = 2 pi / count.
+    For (x, y) at an angle a in [0, pi) (y > 0, or y = 0 and x > 0) the bin is the number of
+    edges in (0, pi) with e_j x (x, y) >= 0 (a at or past e_j); for a in [pi, 2 pi), that of
+    the edges in (0, pi) plus the number of the others it is at or past, count meaning bin 0.  Within
+    a half turn the sign of the cross product orders the angles, so this is the half-open
+    [lo, hi) lookup of the exact angle against the edge directions, rounded once (the product),
+    where atan2 rounds the angle and the half-bin shift rounds again: the two agree but within
+    rounding of an edge (tested).  The zero vector is in bin 0 (its angle is taken as 0).  For
+    count <= SECTOR_MAX every edge is a constant of the kernel, with no transcendental function,
+    no gather and no float-to-integer conversion; above it the atan2 lookup is used.
+    """
+    if count == 1:
+        return torch.zeros_like(x, dtype=torch.int64)
+    if count > SECTOR_MAX:
+        at_zero = (x == 0) & (y == 0)
+        return torch.where(at_zero, 0, azimuth_index(torch.atan2(y, x), count))
+    h = TWO_PI / count
+    upper_edges = [j for j in range(1, count + 1) if (j - 0.5) * h < math.pi]
+    lower_edges = [j for j in range(1, count + 1) if (j - 0.5) * h >= math.pi]
+
+    def passed(edges: list[int]) -> torch.Tensor:
+        n = torch.zeros_like(x, dtype=torch.int64)
+        for j in edges:
+            c, s = math.cos((j - 0.5) * h), math.sin((j - 0.5) * h)
+            n = n + (c * y - s * x >= 0).to(torch.int64)
+        return n
+
+    upper = (y > 0) | ((y == 0) & (x > 0))
+    lower = len(upper_edges) + passed(lower_edges)
+    k = torch.where(upper, passed(upper_edges), torch.where(lower >= count, 0, lower))
+    return torch.where((x == 0) & (y == 0), 0, k)
+
+
+def outgoing_azimuth_index(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor, count: int) -> torch.Tensor:
+    """Bin among ``count`` of phi_o, the azimuth of the horizontal direction (tx, ty) from the
+    radial direction (px, py) (+x at r = 0), as :func:`outgoing_azimuth` measures it:
+    :func:`sector_index` of (p . t, p x t).  A direction with no horizontal part is in bin 0."""
+    at_origin = (px == 0) & (py == 0)
+    px = torch.where(at_origin, torch.ones_like(px), px)
+    return sector_index(px * ty - py * tx, px * tx + py * ty, count)
 
 
 def histogram_index(cfg, comp, spatial, direction, n_sp: int, n_dir: int, n_comp: int = 2):

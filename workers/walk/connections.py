@@ -32,7 +32,7 @@ from typing import Iterator
 
 import torch
 
-from .binning import TWO_PI, azimuth_index, outgoing_azimuth, uniform_index
+from .binning import TWO_PI, outgoing_azimuth_index, sector_index, uniform_index
 from .conventions import PURPOSE_CONNECT
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, refracted_cos, transmittance_cos_ratio
@@ -142,8 +142,7 @@ class ConnectionGeometry:
 def _direction_bin(xo, yo, dx, dy, cos_in, geo: ConnectionGeometry):
     """(cos_o, direction bin index cos * n_phi + phi) of the refracted direction leaving at x_o."""
     cos_o = refracted_cos(cos_in, 1.0 / geo.eta)
-    phi_o = outgoing_azimuth(xo, yo, dx, dy)
-    idx = uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + azimuth_index(phi_o, geo.n_phi)
+    idx = uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + outgoing_azimuth_index(xo, yo, dx, dy, geo.n_phi)
     return cos_o, idx
 
 
@@ -219,7 +218,7 @@ def connect_phase(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     r_lo = geo.r_lo[cfg].gather(1, ir_c[:, None])[:, 0]
     dr = edges_hi.gather(1, ir_c[:, None])[:, 0] - r_lo
     dtheta = TWO_PI / n_t
-    it = azimuth_index(torch.atan2(yo, xo), n_t)
+    it = sector_index(yo, xo, n_t)
     cos_in = torch.clamp(vz, 0.0, 1.0)
     mu = v.ux * vx + v.uy * vy + v.uz * vz
     q_p = phase_function(geo.phase).pdf(mu, g) * cos_in / (t * t)

@@ -20,15 +20,18 @@ Directions
     Fr(uz, 1/eta); the transmitted direction is (eta ux, eta uy, sqrt(1 - eta^2 (1 - uz^2))).
 
 Angles of a bin
-    theta_s: azimuth of the exit point from +x (counterclockwise seen from +z).
+    theta_s: azimuth of the exit point from +x (counterclockwise seen from +z); 0 at r = 0.
     theta_o: outgoing angle (outside the medium) from n; bins uniform in cos(theta_o) over [0, 1].
     phi_o:   azimuth of the outgoing direction measured from the outward radial direction at the
-             exit point (from +x at r = 0), counterclockwise seen from +z.
+             exit point (from +x at r = 0), counterclockwise seen from +z; 0 for a direction
+             straight up (no horizontal part).
+    Both are binned from the vectors, not from angles: a direction's bin is decided by the signs
+    of its cross products with the bins' edge directions (workers.walk.binning.sector_index).
 
 Azimuth bins are centred on the plane of incidence
     With n bins of width h = 2 pi / n, theta_s bin k and phi_o bin k are
     [(k - 1/2) h, (k + 1/2) h) modulo 2 pi; the stored edges run from -h/2 to 2 pi - h/2
-    (schema.bins.azimuth_edges, workers.walk.binning.azimuth_index).  Bin 0 holds theta_s = 0
+    (schema.bins.azimuth_edges, workers.walk.binning.azimuth_index and sector_index).  Bin 0 holds theta_s = 0
     (straight ahead along +x) and phi_o = 0 (leaving radially); for even n bin n/2 holds pi.
     Why: the problem is mirror-symmetric about the plane of incidence (y -> -y maps theta_s to
     -theta_s and phi_o to -phi_o), so S(r, theta_s, cos, phi_o) = S(r, -theta_s, cos, -phi_o),

@@ -14,7 +14,7 @@ the tables' edges are:
 - radial: r = sqrt(x^2 + y^2) / sigma_t in mm, against the configuration's row of edges by a
   branchless binary search (:func:`count_le`);
 - cos_o: uniform bins, :func:`workers.walk.binning.uniform_index`; theta_s, phi_o: azimuth bins
-  centred on 0, :func:`workers.walk.binning.azimuth_index`.
+  centred on 0, :func:`workers.walk.binning.sector_index` (by cross products with the edge directions).
 
 S of an exit, w / cos_o, is unbiased for the bin's BSSRDF averaged over dA d(omega) (the flux
 through a bin is the integral of L cos_o, so the integral of L is the sum of w / cos_o), and has
@@ -58,7 +58,7 @@ from functools import lru_cache
 
 import torch
 
-from .binning import azimuth_index, histogram_index, outgoing_azimuth, uniform_index
+from .binning import histogram_index, outgoing_azimuth_index, sector_index, uniform_index
 from .kernels import compile_kernel
 from .optics import refracted_cos
 from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_at
@@ -130,14 +130,11 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     xd, yd = lanes.x[idx].double(), lanes.y[idx].double()
     r_mm = torch.sqrt(xd * xd + yd * yd) / bins.sigma_t[cfg]
     ir = torch.clamp(count_le(bins.radial_mm, cfg, r_mm) - 1, 0, bins.n_r)
-    if bins.n_theta > 1:
-        it = azimuth_index(torch.atan2(yd, xd), bins.n_theta)
-    else:  # one theta_s bin (normal incidence): no angle needed
-        it = torch.zeros_like(ir)
+    it = sector_index(yd, xd, bins.n_theta)
     # An exit refracted out, so cos_o > 0; the clamp only keeps a padding lane finite.
     cos_o = torch.clamp(refracted_cos(lanes.uz[idx].double(), bins.inv_eta), min=1e-300)
     ic = uniform_index(cos_o, 0.0, 1.0, bins.n_cos)
-    ip = azimuth_index(outgoing_azimuth(xd, yd, lanes.ux[idx].double(), lanes.uy[idx].double()), bins.n_phi)
+    ip = outgoing_azimuth_index(xd, yd, lanes.ux[idx].double(), lanes.uy[idx].double(), bins.n_phi)
     comp = (lanes.nscat[idx] >= 2).to(torch.int64)
     n_sp = (bins.n_r + 1) * bins.n_theta
     n_dir = bins.n_cos * bins.n_phi

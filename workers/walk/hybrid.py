@@ -42,7 +42,7 @@ from functools import lru_cache
 
 import torch
 
-from .binning import TWO_PI, azimuth_index, histogram_index, outgoing_azimuth, uniform_index
+from .binning import TWO_PI, histogram_index, outgoing_azimuth_index, sector_index, uniform_index
 from .conventions import PURPOSE_CONNECT
 from .harvest import ExitBins, count_le, exit_bins
 from .kernels import compile_kernel
@@ -94,8 +94,7 @@ class FirstVertexGeometry:
 
 def _direction_index(xo, yo, dx, dy, cos_in, geo: FirstVertexGeometry):
     cos_o = refracted_cos(cos_in, 1.0 / geo.eta)
-    phi_o = outgoing_azimuth(xo, yo, dx, dy)
-    return uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + azimuth_index(phi_o, geo.n_phi)
+    return uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + outgoing_azimuth_index(xo, yo, dx, dy, geo.n_phi)
 
 
 def _stratum_size(flat_bin: torch.Tensor, n_bins: int, k: int) -> torch.Tensor:
@@ -146,7 +145,7 @@ def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVer
     xo, yo = px + t * vx, t * vy  # the vertex lies in the incidence plane (y = 0)
     r = torch.sqrt(xo * xo + yo * yo)
     ir = torch.clamp(count_le(geo.edges, cfg, r) - 1, 0, n_r)
-    it = azimuth_index(torch.atan2(yo, xo), n_t)
+    it = sector_index(yo, xo, n_t)
     inside = ir < n_r
     irc = torch.clamp(ir, max=n_r - 1)
     dr = edges.gather(1, irc[:, None] + 1)[:, 0] - edges.gather(1, irc[:, None])[:, 0]
