@@ -117,14 +117,15 @@ def sector_index(y: torch.Tensor, x: torch.Tensor, count: int) -> torch.Tensor:
 
     Edge j = 1 .. count of the bins is the direction e_j at (j - 1/2) h, h = 2 pi / count.
     For (x, y) at an angle a in [0, pi) (y > 0, or y = 0 and x > 0) the bin is the number of
-    edges in (0, pi) with e_j x (x, y) >= 0 (a at or past e_j); for a in [pi, 2 pi), that of
-    the edges in (0, pi) plus the number of the others it is at or past, count meaning bin 0.  Within
-    a half turn the sign of the cross product orders the angles, so this is the half-open
-    [lo, hi) lookup of the exact angle against the edge directions, rounded once (the product),
-    where atan2 rounds the angle and the half-bin shift rounds again: the two agree but within
-    rounding of an edge (tested).  The zero vector is in bin 0 (its angle is taken as 0).  For
-    count <= SECTOR_MAX every edge is a constant of the kernel, with no transcendental function,
-    no gather and no float-to-integer conversion; above it the atan2 lookup is used.
+    edges in (0, pi) with e_j x (x, y) >= 0 (a at or past e_j); for a in [pi, 2 pi) it is the
+    number of edges in (0, pi) plus the number of the others that a is at or past, a count of
+    ``count`` being bin 0.  Within a half turn the sign of the cross product orders the angles,
+    so this is the half-open [lo, hi) lookup of the exact angle against the edge directions,
+    rounded once (the product), where atan2 rounds the angle and the half-bin shift rounds
+    again: the two agree but within rounding of an edge (tested).  The zero vector is in bin 0
+    (its angle is taken as 0).  For count <= SECTOR_MAX every edge is a constant of the kernel,
+    with no transcendental function, no gather and no float-to-integer conversion; above it
+    the atan2 lookup is used.
     """
     if count == 1:
         return torch.zeros_like(x, dtype=torch.int64)
@@ -151,7 +152,8 @@ def sector_index(y: torch.Tensor, x: torch.Tensor, count: int) -> torch.Tensor:
 def outgoing_azimuth_index(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor, count: int) -> torch.Tensor:
     """Bin among ``count`` of phi_o, the azimuth of the horizontal direction (tx, ty) from the
     radial direction (px, py) (+x at r = 0), as :func:`outgoing_azimuth` measures it:
-    :func:`sector_index` of (p . t, p x t).  A direction with no horizontal part is in bin 0."""
+    :func:`sector_index` of the vector (x, y) = (p . t, p x t).  A direction with no horizontal
+    part is in bin 0."""
     at_origin = (px == 0) & (py == 0)
     px = torch.where(at_origin, torch.ones_like(px), px)
     return sector_index(px * ty - py * tx, px * tx + py * ty, count)
