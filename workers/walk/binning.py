@@ -16,7 +16,9 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth", "sector_index", "outgoing_azimuth_index", "histogram_index"]
+__all__ = [
+    "wrap_angle", "uniform_index", "azimuth_index", "outgoing_azimuth", "sector_index", "outgoing_azimuth_index", "direction_index", "histogram_index",
+]
 
 TWO_PI = 2.0 * math.pi
 
@@ -99,11 +101,16 @@ def outgoing_azimuth(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: t
     of signed zeros would give 0 or pi by the signs).  The walk bins phi_o with
     :func:`outgoing_azimuth_index`, without the angle.
     """
+    cross, dot = _from_radial(px, py, tx, ty)
+    return torch.where((cross == 0) & (dot == 0), 0.0, wrap_angle(torch.atan2(cross, dot)))
+
+
+def _from_radial(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(p x t, p . t): the horizontal direction t in the frame of the radial direction p, which
+    is +x at r = 0 (x along p, y counterclockwise from it; not normalised)."""
     at_origin = (px == 0) & (py == 0)
     px = torch.where(at_origin, torch.ones_like(px), px)
-    cross = px * ty - py * tx
-    dot = px * tx + py * ty
-    return torch.where((cross == 0) & (dot == 0), 0.0, wrap_angle(torch.atan2(cross, dot)))
+    return px * ty - py * tx, px * tx + py * ty
 
 
 SECTOR_MAX = 16
@@ -154,9 +161,16 @@ def outgoing_azimuth_index(px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor,
     radial direction (px, py) (+x at r = 0), as :func:`outgoing_azimuth` measures it:
     :func:`sector_index` of the vector (x, y) = (p . t, p x t).  A direction with no horizontal
     part is in bin 0."""
-    at_origin = (px == 0) & (py == 0)
-    px = torch.where(at_origin, torch.ones_like(px), px)
-    return sector_index(px * ty - py * tx, px * tx + py * ty, count)
+    cross, dot = _from_radial(px, py, tx, ty)
+    return sector_index(cross, dot, count)
+
+
+def direction_index(cos_o: torch.Tensor, px: torch.Tensor, py: torch.Tensor, tx: torch.Tensor, ty: torch.Tensor,
+                    n_cos: int, n_phi: int) -> torch.Tensor:
+    """Direction bin cos * n_phi + phi (int64) of a direction leaving at (px, py) with outgoing
+    cosine cos_o and horizontal part (tx, ty): the exit tally, the hybrid and the connections
+    all bin directions with it."""
+    return uniform_index(cos_o, 0.0, 1.0, n_cos) * n_phi + outgoing_azimuth_index(px, py, tx, ty, n_phi)
 
 
 def histogram_index(cfg, comp, spatial, direction, n_sp: int, n_dir: int, n_comp: int = 2):

@@ -32,7 +32,7 @@ from typing import Iterator
 
 import torch
 
-from .binning import TWO_PI, outgoing_azimuth_index, sector_index, uniform_index
+from .binning import TWO_PI, direction_index, sector_index
 from .conventions import PURPOSE_CONNECT
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, refracted_cos, transmittance_cos_ratio
@@ -140,10 +140,8 @@ class ConnectionGeometry:
 
 
 def _direction_bin(xo, yo, dx, dy, cos_in, geo: ConnectionGeometry):
-    """(cos_o, direction bin index cos * n_phi + phi) of the refracted direction leaving at x_o."""
-    cos_o = refracted_cos(cos_in, 1.0 / geo.eta)
-    idx = uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + outgoing_azimuth_index(xo, yo, dx, dy, geo.n_phi)
-    return cos_o, idx
+    """Direction bin cos * n_phi + phi of the direction refracted out at x_o."""
+    return direction_index(refracted_cos(cos_in, 1.0 / geo.eta), xo, yo, dx, dy, geo.n_cos, geo.n_phi)
 
 
 def connect_uniform(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
@@ -191,7 +189,7 @@ def connect_uniform(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     base = (v.w * albedo)[:, None] * torch.exp(-d) / (q_p + q_u)
     G = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
     S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (phase_function(geo.phase).evaluate(mu, g[:, None]) / d2)
-    _, direction = _direction_bin(xo, yo, dx, dy, cos_in, geo)
+    direction = _direction_bin(xo, yo, dx, dy, cos_in, geo)
     spatial = torch.arange(n_bins, dtype=torch.int64)[None, :].expand_as(direction)
     return G, S, spatial, direction
 
@@ -228,7 +226,7 @@ def connect_phase(v: Vertices, table: ConfigTable, geo: ConnectionGeometry):
     base = torch.where(up & (q_p > 0), w * albedo * torch.exp(-t) / torch.clamp(q_p + q_u, min=1e-30), torch.zeros_like(w))
     G = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
     S = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (phase_function(geo.phase).evaluate(mu, g) / (t * t))
-    _, direction = _direction_bin(xo, yo, vx, vy, cos_in, geo)
+    direction = _direction_bin(xo, yo, vx, vy, cos_in, geo)
     spatial = ir * n_t + it
     return G, S, spatial, direction
 

@@ -31,8 +31,9 @@ Angles of a bin
 Azimuth bins are centred on the plane of incidence
     With n bins of width h = 2 pi / n, theta_s bin k and phi_o bin k are
     [(k - 1/2) h, (k + 1/2) h) modulo 2 pi; the stored edges run from -h/2 to 2 pi - h/2
-    (schema.bins.azimuth_edges, workers.walk.binning.azimuth_index and sector_index).  Bin 0 holds theta_s = 0
-    (straight ahead along +x) and phi_o = 0 (leaving radially); for even n bin n/2 holds pi.
+    (schema.bins.azimuth_edges, workers.walk.binning.azimuth_index and sector_index).  Bin 0
+    holds theta_s = 0 (straight ahead along +x) and phi_o = 0 (leaving radially); for even n
+    bin n/2 holds pi.
     Why: the problem is mirror-symmetric about the plane of incidence (y -> -y maps theta_s to
     -theta_s and phi_o to -phi_o), so S(r, theta_s, cos, phi_o) = S(r, -theta_s, cos, -phi_o),
     and with centred bins the mirror of bin (k, m) is the bin ((n_t - k) mod n_t, (n_p - m) mod n_p)

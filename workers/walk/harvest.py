@@ -58,7 +58,7 @@ from functools import lru_cache
 
 import torch
 
-from .binning import histogram_index, outgoing_azimuth_index, sector_index, uniform_index
+from .binning import direction_index, histogram_index, sector_index
 from .kernels import compile_kernel
 from .optics import refracted_cos
 from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_at
@@ -133,12 +133,11 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     it = sector_index(yd, xd, bins.n_theta)
     # An exit refracted out, so cos_o > 0; the clamp only keeps a padding lane finite.
     cos_o = torch.clamp(refracted_cos(lanes.uz[idx].double(), bins.inv_eta), min=1e-300)
-    ic = uniform_index(cos_o, 0.0, 1.0, bins.n_cos)
-    ip = outgoing_azimuth_index(xd, yd, lanes.ux[idx].double(), lanes.uy[idx].double(), bins.n_phi)
+    direction = direction_index(cos_o, xd, yd, lanes.ux[idx].double(), lanes.uy[idx].double(), bins.n_cos, bins.n_phi)
     comp = (lanes.nscat[idx] >= 2).to(torch.int64)
     n_sp = (bins.n_r + 1) * bins.n_theta
     n_dir = bins.n_cos * bins.n_phi
-    flat = histogram_index(cfg, comp, ir * bins.n_theta + it, ic * bins.n_phi + ip, n_sp, n_dir)
+    flat = histogram_index(cfg, comp, ir * bins.n_theta + it, direction, n_sp, n_dir)
     batch = batch_index(lanes.photon[idx], bins.batch_starts)
     wd = lanes.w[idx].double()
     return flat, batch, wd, wd / cos_o

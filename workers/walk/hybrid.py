@@ -42,7 +42,7 @@ from functools import lru_cache
 
 import torch
 
-from .binning import TWO_PI, histogram_index, outgoing_azimuth_index, sector_index, uniform_index
+from .binning import TWO_PI, direction_index, histogram_index, sector_index
 from .conventions import PURPOSE_CONNECT
 from .harvest import ExitBins, count_le, exit_bins
 from .kernels import compile_kernel
@@ -90,11 +90,6 @@ class FirstVertexGeometry:
     @property
     def n_r(self) -> int:
         return self.edges.shape[1] - 1
-
-
-def _direction_index(xo, yo, dx, dy, cos_in, geo: FirstVertexGeometry):
-    cos_o = refracted_cos(cos_in, 1.0 / geo.eta)
-    return uniform_index(cos_o, 0.0, 1.0, geo.n_cos) * geo.n_phi + outgoing_azimuth_index(xo, yo, dx, dy, geo.n_phi)
 
 
 def _stratum_size(flat_bin: torch.Tensor, n_bins: int, k: int) -> torch.Tensor:
@@ -159,7 +154,7 @@ def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVer
     G_p = base * fresnel_transmittance(cos_in, 1.0 / geo.eta) * q_p
     S_p = base * transmittance_cos_ratio(cos_in, 1.0 / geo.eta) * (p / tt)
     sp_p = ir * n_t + it
-    dir_p = _direction_index(xo, yo, vx, vy, cos_in, geo)
+    dir_p = direction_index(refracted_cos(cos_in, 1.0 / geo.eta), xo, yo, vx, vy, geo.n_cos, geo.n_phi)
 
     # Stratified uniform techniques: one block of four uniforms per stratum.
     cols = []
@@ -183,8 +178,8 @@ def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVer
         # q_j is infinite at r = 0: the clamp makes this sample's weight exactly 0 there.
         qj = 1.0 / torch.clamp(n_j * rr * drj * dtheta, min=1e-30)
         bj = wa * torch.exp(-d) / (qpj + qj)
-        cols.append((b, _direction_index(xs, ys, dx, dy, cin, geo), bj * fresnel_transmittance(cin, 1.0 / geo.eta) * qpj,
-                     bj * transmittance_cos_ratio(cin, 1.0 / geo.eta) * (pj / d2)))  # fmt: skip
+        dir_j = direction_index(refracted_cos(cin, 1.0 / geo.eta), xs, ys, dx, dy, geo.n_cos, geo.n_phi)
+        cols.append((b, dir_j, bj * fresnel_transmittance(cin, 1.0 / geo.eta) * qpj, bj * transmittance_cos_ratio(cin, 1.0 / geo.eta) * (pj / d2)))
     cols.append((sp_p, dir_p, G_p, S_p))
     return cols
 
