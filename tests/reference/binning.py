@@ -1,7 +1,7 @@
 """Searched bin lookups: the plain reference the walk's fused lookups are tested against.
 
 The walk bins events with computed uniform edges (:func:`workers.walk.binning.uniform_index`) and a
-branchless binary search (:func:`workers.walk.harvest.count_le`); these look the values up in the
+bucket index or binary search of the radial edges (:mod:`workers.walk.search`); these look the values up in the
 stored float64 edges with torch.searchsorted / bucketize, the obvious way, for the tests only.
 """
 

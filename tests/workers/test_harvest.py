@@ -19,25 +19,11 @@ from schema import azimuth_edges, uniform_edges
 from tests.reference.binning import searched
 from workers.fold.configs import BinLayout
 from workers.walk.binning import outgoing_azimuth
-from workers.walk.harvest import ExitBins, batch_index, count_le, exit_bins
+from workers.walk.harvest import ExitBins, batch_index, exit_bins
 from workers.walk.optics import refracted_cos
 from workers.walk.walk import EMPTY, EXITED, RUNNING, Lanes
 
 TWO_PI = 2.0 * math.pi
-
-
-@pytest.mark.parametrize("m", [1, 2, 3, 5, 8, 49, 64, 65])
-def test_count_le_is_searchsorted_right(m):
-    """Every value of a row, each just below and above, and values outside the row."""
-    gen = torch.Generator().manual_seed(m)
-    table = torch.sort(torch.rand(3, m, generator=gen, dtype=torch.float64) * 10.0, dim=1).values
-    table[1, : m // 2] = table[1, 0]  # repeated edges
-    for row in range(3):
-        r = table[row]
-        values = torch.cat((r, torch.nextafter(r, r - 1), torch.nextafter(r, r + 1), torch.tensor([-1.0, 0.0, 11.0, 1e300])))
-        rows = torch.full(values.shape, row, dtype=torch.int64)
-        want = torch.searchsorted(r, values, right=True)
-        assert torch.equal(count_le(table, rows, values), want)
 
 
 @pytest.mark.parametrize("n_batches", [1, 4, 16, 17, 1024])

@@ -11,8 +11,9 @@ tensor operations it was a pass over the events per operation and cost, on short
 much as the walk itself.  The lookups are exact with respect to the stored edges, in float64, as
 the tables' edges are:
 
-- radial: r = sqrt(x^2 + y^2) / sigma_t in mm, against the configuration's row of edges by a
-  branchless binary search (:func:`count_le`);
+- radial: r = sqrt(x^2 + y^2) / sigma_t in mm, against the configuration's row of edges through
+  their bucket index (:func:`workers.walk.search.indexed_count_le`: a gather and a comparison
+  where a binary search took six dependent gathers);
 - cos_o: uniform bins, :func:`workers.walk.binning.uniform_index`; theta_s, phi_o: azimuth bins
   centred on 0, :func:`workers.walk.binning.sector_index` (by cross products with the edge directions).
 
@@ -53,7 +54,7 @@ second kernel, and on short paths (M2) that cost more than the walk (BENCHMARKS.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import torch
@@ -61,9 +62,10 @@ import torch
 from .binning import direction_index, histogram_index, sector_index
 from .kernels import compile_kernel
 from .optics import refracted_cos
+from .search import EdgeIndex, count_le, indexed_count_le
 from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_at
 
-__all__ = ["ExitBins", "batch_index", "count_le", "exit_bins", "harvest_block", "harvest_fields", "harvest_function"]
+__all__ = ["ExitBins", "batch_index", "exit_bins", "harvest_block", "harvest_fields", "harvest_function"]
 
 
 @dataclass(frozen=True)
@@ -72,7 +74,8 @@ class ExitBins:
 
     radial_mm: float64 [n_cfg, n_r + 1] radial edges of each configuration's channel (mm);
     sigma_t: float64 [n_cfg] (1/mm, optical -> mm); batch_starts: int64 [n_batches], the first
-    photon index of each batch of the shard; n_theta, n_cos, n_phi: bin counts; inv_eta: 1/eta.
+    photon index of each batch of the shard; n_theta, n_cos, n_phi: bin counts; inv_eta: 1/eta;
+    radial_index: the bucket index of radial_mm, built from it (workers.walk.search).
     """
 
     radial_mm: torch.Tensor
@@ -82,38 +85,21 @@ class ExitBins:
     n_cos: int
     n_phi: int
     inv_eta: float
+    radial_index: EdgeIndex | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "radial_index", EdgeIndex.build(self.radial_mm))
 
     @property
     def n_r(self) -> int:
         return self.radial_mm.shape[1] - 1
 
 
-def count_le(table: torch.Tensor, row: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
-    """Number of entries of table[row] that are <= value (int64), each table row sorted ascending.
-
-    ``torch.searchsorted(table[row], value, right=True)`` elementwise, computed by binary lifting:
-    k grows by the powers of two from the largest <= m down to 1 while the entry it would cover,
-    table[row, k + step - 1], is still <= value.  A fixed number of gathers and no data-dependent
-    loop, so it compiles into the surrounding elementwise kernel.  A NaN value counts 0.
-    """
-    m = table.shape[1]
-    flat = table.reshape(-1)
-    base = row * m
-    k = torch.zeros_like(row)
-    step = 1 << (m.bit_length() - 1)
-    while step:
-        cand = k + step
-        entry = flat[base + torch.clamp(cand, max=m) - 1]
-        k = torch.where((cand <= m) & (entry <= value), cand, k)
-        step >>= 1
-    return k
-
-
 def batch_index(photon: torch.Tensor, batch_starts: torch.Tensor) -> torch.Tensor:
     """Batch of each photon index: the number of batch starts at or below it, minus one.
 
     The photon is never below the first start.  A few batches (the usual case) are counted by
-    comparisons, which vectorize; many by :func:`count_le`'s search.
+    comparisons, which vectorize; many by :func:`workers.walk.search.count_le`'s binary search.
     """
     if batch_starts.shape[0] <= 16:
         return (photon[:, None] >= batch_starts[None, 1:]).sum(dim=1)
@@ -129,7 +115,7 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     cfg = lanes.cfg[idx]
     xd, yd = lanes.x[idx].double(), lanes.y[idx].double()
     r_mm = torch.sqrt(xd * xd + yd * yd) / bins.sigma_t[cfg]
-    ir = torch.clamp(count_le(bins.radial_mm, cfg, r_mm) - 1, 0, bins.n_r)
+    ir = torch.clamp(indexed_count_le(bins.radial_mm, bins.radial_index, cfg, r_mm) - 1, 0, bins.n_r)
     it = sector_index(yd, xd, bins.n_theta)
     # An exit refracted out, so cos_o > 0; the clamp only keeps a padding lane finite.
     cos_o = torch.clamp(refracted_cos(lanes.uz[idx].double(), bins.inv_eta), min=1e-300)

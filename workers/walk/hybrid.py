@@ -37,18 +37,19 @@ exit, so its contributions are squared per photon (workers.fold.tally).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import torch
 
 from .binning import TWO_PI, direction_index, histogram_index, sector_index
 from .conventions import PURPOSE_CONNECT
-from .harvest import ExitBins, count_le, exit_bins
+from .harvest import ExitBins, exit_bins
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, refracted_cos, sample_exponential, scatter_direction, transmittance_cos_ratio
 from .phase import DEFAULT_PHASE, phase_function
 from .rng import philox4x32, photon_words, stream_draws, uniform_halfopen, uniform_open
+from .search import EdgeIndex, indexed_count_le
 from .walk import EXITED, Lanes, walk_stream_start
 
 __all__ = ["K_SAMPLES", "FirstVertexGeometry", "EntryLayout", "strata", "first_vertex_samples", "photon_entries", "entries_function"]
@@ -68,7 +69,8 @@ class FirstVertexGeometry:
 
     edges: [n_cfg, n_r + 1] radial edges of each configuration's channel; u0x, u0z, w0, albedo,
     g, k0, k1: per configuration (incident direction inside, 1 - R_spec, HG, Philox key words);
-    n_theta, n_cos, n_phi; eta; k: stratified samples; hg_branch as in WalkParams.
+    n_theta, n_cos, n_phi; eta; k: stratified samples; hg_branch as in WalkParams; edge_index:
+    the bucket index of edges, built from them (workers.walk.search).
     """
 
     edges: torch.Tensor
@@ -86,6 +88,10 @@ class FirstVertexGeometry:
     k: int
     hg_branch: str
     phase: str = DEFAULT_PHASE  # the phase function (workers.walk.phase)
+    edge_index: EdgeIndex | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "edge_index", EdgeIndex.build(self.edges))
 
     @property
     def n_r(self) -> int:
@@ -139,7 +145,7 @@ def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVer
     t = -pz / torch.clamp(vz, min=1e-30)
     xo, yo = px + t * vx, t * vy  # the vertex lies in the incidence plane (y = 0)
     r = torch.sqrt(xo * xo + yo * yo)
-    ir = torch.clamp(count_le(geo.edges, cfg, r) - 1, 0, n_r)
+    ir = torch.clamp(indexed_count_le(geo.edges, geo.edge_index, cfg, r) - 1, 0, n_r)
     it = sector_index(yo, xo, n_t)
     inside = ir < n_r
     irc = torch.clamp(ir, max=n_r - 1)

@@ -57,7 +57,7 @@ __all__ = ["GRAPH_MODULES", "artifact_key", "cache_dir", "compile_kernel", "obse
 log = logging.getLogger(__name__)
 
 # Modules of this package whose code ends up in a compiled graph (tests check the import closure).
-GRAPH_MODULES = ("walk", "connections", "hybrid", "stretch", "path_roulette", "harvest", "optics", "phase", "rng", "binning", "conventions")
+GRAPH_MODULES = ("walk", "connections", "hybrid", "stretch", "path_roulette", "harvest", "optics", "phase", "rng", "binning", "search", "conventions")
 
 _compile_lock = threading.Lock()  # one compile at a time per process (threads sharing a kernel)
 _observers: list[Callable[[str, bool], None]] = []  # observe_compiles callbacks, in registration order
