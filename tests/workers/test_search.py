@@ -65,8 +65,7 @@ def _values(table: torch.Tensor, index: EdgeIndex | None, gen: torch.Generator) 
     parts.append(torch.pow(10.0, lo + (hi - lo) * torch.rand(20_000, generator=gen, dtype=torch.float64)).to(dt))
     fin = torch.finfo(dt)
     parts.append(torch.tensor([0.0, -0.0, -1.0, -fin.tiny, fin.tiny, fin.tiny / 4, fin.max, -fin.max, math.inf, -math.inf, math.nan, -math.nan], dtype=dt))
-    v = torch.cat(parts)
-    return v[torch.isfinite(v) | torch.isinf(v) | torch.isnan(v)]
+    return torch.cat(parts)
 
 
 def _want(table: torch.Tensor, row: int, values: torch.Tensor) -> torch.Tensor:
@@ -100,7 +99,7 @@ def test_the_default_layouts_index_has_one_check_per_value():
     for table in (torch.from_numpy(TABLES["geometric x sigma_t"]), torch.from_numpy(TABLES["geometric x sigma_t"]).float()):
         index = EdgeIndex.build(table)
         assert index is not None and index.checks == 1
-        assert index.counts.shape == (4, index.counts.shape[1]) and index.counts.shape[1] < 1000
+        assert index.counts.shape[0] == 4 and index.counts.shape[1] < 1000
 
 
 def test_crowded_edges_fall_back_to_the_binary_search():

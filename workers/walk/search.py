@@ -35,7 +35,6 @@ __all__ = ["count_le", "EdgeIndex", "indexed_count_le"]
 
 # Float dtype -> (its integer reading, mantissa bits).
 _BITS = {torch.float32: (torch.int32, 23), torch.float64: (torch.int64, 52)}
-_NUMPY_INT = {torch.float32: np.int32, torch.float64: np.int64}
 _MAX_BUCKETS = 1 << 16  # per index (all rows): 512 KiB of int64 counts at most
 _MAX_OCTAVE_BITS = 12  # at most 4096 buckets per octave
 
@@ -89,7 +88,8 @@ class EdgeIndex:
         if not np.isfinite(edges).all() or (edges < 0).any() or (np.diff(edges, axis=1) < 0).any():
             raise ValueError("EdgeIndex: the edges must be finite, >= 0 and sorted ascending in every row")
         mantissa = _BITS[table.dtype][1]
-        bits = edges.view(_NUMPY_INT[table.dtype]).astype(np.int64)
+        int_dtype = np.dtype(f"i{edges.itemsize}")  # the floats' integer reading, as in _BITS
+        bits = edges.view(int_dtype).astype(np.int64)
         positive = bits[edges > 0]
         best = None
         for octave_bits in range(_MAX_OCTAVE_BITS + 1):
@@ -109,7 +109,7 @@ class EdgeIndex:
         if best is None or best[3] > table.shape[1].bit_length():
             return None
         first, n_buckets, shift, checks = best
-        starts = ((np.arange(n_buckets, dtype=np.int64) + first) << shift).astype(_NUMPY_INT[table.dtype]).view(edges.dtype)
+        starts = ((np.arange(n_buckets, dtype=np.int64) + first) << shift).astype(int_dtype).view(edges.dtype)
         counts = np.stack([np.searchsorted(row, starts, side="right") for row in edges]).astype(np.int64)
         return cls(counts=torch.from_numpy(counts), first=first, shift=shift, checks=checks)
 
