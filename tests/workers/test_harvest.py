@@ -173,7 +173,7 @@ def test_harvest_block_records_lanes_and_refills_them_in_lane_order():
     configuration, entry state, its walk stream started), the rest become EMPTY, running lanes
     and the padding's scratch lane keep their state."""
     from workers.walk.walk import TRUNCATED, walk_stream_start
-    from workers.walk.harvest import exit_bins
+    from workers.walk.harvest import exit_bins, spread_bins, spread_mask
 
     bins, _, _ = _bins()
     lanes = _lanes(HARVEST_N, bins, seed=17)
@@ -193,7 +193,11 @@ def test_harvest_block_records_lanes_and_refills_them_in_lane_order():
     ex = st == EXITED
     ref_flat, _, ref_g, ref_s = exit_bins(idx[ex], _as_lanes(before), bins)
     assert torch.equal(flat[ex], ref_flat) and torch.equal(g[ex], ref_g) and torch.equal(s[ex], ref_s)
-    assert bool((flat[~ex] == 0).all()) and bool((g[~ex] == 0).all()) and bool((s[~ex] == 0).all())
+    # Zeros spread over configuration 0's bins by position in the block (harvest.spread_mask), where they change no sum.
+    spread = torch.arange(len(idx)) % HARVEST_BLOCK & spread_mask(spread_bins(bins))
+    assert spread_bins(bins) == 2 * (N_R + 1) * N_THETA * N_COS * N_PHI and int(spread.max()) == HARVEST_BLOCK - 1
+    assert [spread_mask(n) for n in (1, 2, 3, 4, 959, 960, 1024, 1025)] == [0, 1, 1, 3, 511, 511, 1023, 1023]
+    assert torch.equal(flat[~ex], spread[~ex]) and bool((g[~ex] == 0).all()) and bool((s[~ex] == 0).all())
 
     q = nxt + torch.arange(len(idx))
     new, idle, qn = idx[q < end], idx[q >= end], q[q < end]

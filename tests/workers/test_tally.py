@@ -10,8 +10,8 @@ import torch
 
 from workers.walk.hybrid import photon_entries
 from workers.run.plan import ShardPlan
-from workers.run.shard import _Runner
-from workers.fold.tally import PhotonAccumulator, TallyLayout, entry_square_keys, fold_square_totals, photon_moments
+from workers.run.shard import _Runner, ordered_sum as torch_ordered_sum
+from workers.fold.tally import RD_SQUARE_ROWS, PhotonAccumulator, TallyLayout, entry_square_keys, fold_square_totals, ordered_sum, photon_moments
 from workers.walk.walk import EMPTY, RUNNING
 
 
@@ -67,6 +67,9 @@ def test_hybrid_kernel_squares_per_photon(walk_spec):
     acc.add_photons("hybrid", flat2, g, s, key, weight)
     np.testing.assert_allclose(acc.squares["hybrid"], 2.0 * want, rtol=1e-12, atol=1e-300)
     assert np.all(g[:, :-1] >= 0) and (g[:, :-1] > 0).any() and flat2.shape == g.shape
+    # The phase sample's zeros (it pointed down) are spread over bins, not chained in one (photon_entries).
+    down = (g[:, -2] == 0) & (s[:, -2] == 0)
+    assert down.sum() > 20 and len(np.unique(flat2[down, -2])) > 20
 
 
 def test_entry_square_keys_index_each_level_and_component_of_the_entry():
@@ -98,3 +101,64 @@ def test_zero_weight_exits_are_no_events():
     np.testing.assert_array_equal(counts["exits/bins_G"][0, 0, :, 0, 0, 0], [2, 0])
     np.testing.assert_array_equal(counts["exits/radial_G"][0, 2], [2, 0])  # total
     assert counts["exits/Rd"][0, 0] == 2
+
+
+def _bits(a) -> np.ndarray:
+    return np.asarray(a, dtype=np.float64).view(np.int64)
+
+
+def test_ordered_sums_have_the_bits_of_a_bincount_into_one_bin():
+    """Both sequential sums, numpy's (the fold's default) and torch's (the shard's), give the bits
+    np.bincount gives a bin that receives every value: for values whose sum rounds differently
+    in any other order (pairwise, as np.sum, is checked to differ), and for the edge cases."""
+    rng = np.random.default_rng(11)
+    one_bin = lambda v: np.bincount(np.zeros(v.size, dtype=np.int64), weights=v, minlength=1)[0]  # noqa: E731
+    cases = [np.array([]), np.array([-0.0]), np.array([-0.0, -0.0]), np.array([-0.0, 0.0]), np.array([5e-324, -0.0, 5e-324]),
+             np.array([1.0, np.inf]), np.array([np.inf, -np.inf])]  # fmt: skip
+    for n in (1, 2, 7, 8, 9, 63, 64, 65, 4096, 10007):
+        v = rng.standard_normal(n) * 10.0 ** rng.integers(-12, 12, n)
+        v[rng.random(n) < 0.3] = 0.0
+        cases.append(v)
+    differs = 0
+    for v in cases:
+        with np.errstate(invalid="ignore"):  # inf - inf
+            want = one_bin(v)
+            got_all = [fn(v) for fn in (ordered_sum, torch_ordered_sum)]
+        for fn, got in zip((ordered_sum, torch_ordered_sum), got_all):
+            assert _bits(got) == _bits(want) or (np.isnan(got) and np.isnan(want)), (fn.__module__, v[:4], got, want)
+        differs += v.size > 1000 and np.sum(v) != want
+    assert differs  # the cases would catch a sum in another order
+
+
+def test_one_configuration_sums_keep_the_bits_of_bincounts():
+    """With one configuration the walk totals and Rd's squares are summed in order apart from the
+    bincounts (PhotonAccumulator's docstring): every array the accumulator keeps has the bits
+    of plain bincounts over the same inputs in the same order."""
+    rng = np.random.default_rng(12)
+    hist = (5, 2, 2, 3)
+    layout = TallyLayout(1, hist)
+    size, size2 = int(layout.square_offsets[-1]), 2 * layout.n_sp * layout.n_dir
+    o_rd = int(layout.square_offsets[3])
+    for fn in (ordered_sum, torch_ordered_sum):
+        acc = PhotonAccumulator(["hybrid"], 1, hist, ordered_sum=fn)
+        want_sq, want_walk = np.zeros(size), np.zeros((2, 3, 1))
+        for p in (1, 3, 700, 4096):
+            flat2 = rng.integers(0, size2, (p, 4))
+            g = rng.random((p, 4)) * 10.0 ** rng.integers(-8, 8, (p, 4)) * (rng.random((p, 4)) < 0.7)
+            s = g / rng.random((p, 4))
+            q = 3 * 5 + RD_SQUARE_ROWS
+            key = rng.integers(0, o_rd, (q, p))
+            key[-RD_SQUARE_ROWS:] = o_rd + np.arange(RD_SQUARE_ROWS)[:, None]  # Rd's rows: the configuration's bin of each component
+            weight = rng.random((q, p)) * 10.0 ** rng.integers(-8, 8, (q, p)) * (rng.random((q, p)) < 0.6)
+            acc.add_photons("hybrid", flat2, g, s, key, weight)
+            want_sq += fold_square_totals(np.bincount(key.ravel(), weights=weight.ravel(), minlength=size), layout)
+            absorbed = rng.random(p) * 10.0 ** rng.integers(-8, 8, p) * (rng.random(p) < 0.5)
+            truncated = np.where(rng.random(p) < 0.01, rng.random(p), 0.0)
+            acc.add_walk(np.zeros(p, dtype=np.int64), absorbed, truncated)
+            for i, v in enumerate((absorbed, truncated)):
+                if (v != 0).any():
+                    want_walk[i] += [np.bincount(np.zeros(p, dtype=np.int64), weights=w, minlength=1) for w in (v, v * v)] + [[np.count_nonzero(v)]]
+        np.testing.assert_array_equal(_bits(acc.squares["hybrid"]), _bits(want_sq))
+        np.testing.assert_array_equal(_bits(acc.walk["absorbed"]), _bits(want_walk[0]))
+        np.testing.assert_array_equal(_bits(acc.walk["truncated"]), _bits(want_walk[1]))
+        assert acc.walk["truncated"][2, 0] > 0 and np.count_nonzero(acc.squares["hybrid"][o_rd:]) == RD_SQUARE_ROWS

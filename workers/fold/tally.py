@@ -33,11 +33,12 @@ from __future__ import annotations
 import io
 import json
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
-__all__ = ["BATCH_ESTIMATORS", "BatchAccumulator", "PhotonAccumulator", "TallyLayout", "ShardTally", "QUANTITIES", "entry_square_keys",
-           "fold_square_totals", "photon_moments", "units_name"]
+__all__ = ["BATCH_ESTIMATORS", "BatchAccumulator", "PhotonAccumulator", "TallyLayout", "ShardTally", "QUANTITIES", "RD_SQUARE_ROWS",
+           "entry_square_keys", "fold_square_totals", "ordered_sum", "photon_moments", "units_name"]
 
 QUANTITIES = ("bins_G", "bins_S", "radial_G", "Rd", "absorbed", "truncated")
 """Per estimator: bins_G / bins_S [cfg, comp3, n_r+1, n_theta, n_cos, n_phi] (sum of w and of
@@ -46,6 +47,18 @@ absorbed and truncated [cfg] (walk totals, not per estimator, stored under the k
 
 BATCH_ESTIMATORS = ("connections",)
 """Estimators whose standard errors come from batches; the others' from photons."""
+
+
+RD_SQUARE_ROWS = 3
+"""The last rows of a multi-entry estimator's square keys (workers.walk.hybrid.photon_entries) are
+Rd's, one per component, each keyed by the photon's configuration alone."""
+
+
+def ordered_sum(values: np.ndarray) -> float:
+    """The sum of values in their order, (((0 + v_0) + v_1) + ...): the bits np.bincount gives a bin
+    that receives all of them.  numpy's sum is pairwise and rounds otherwise; its cumulative sum
+    is sequential (the shard runner passes a faster one with the same bits: workers.run.shard)."""
+    return float(np.cumsum(values)[-1]) + 0.0 if values.size else 0.0  # + 0.0: a sum of -0.0 alone is +0.0, as in a bincount
 
 
 def units_name(group: str) -> str:
@@ -132,12 +145,19 @@ class PhotonAccumulator:
     terms, so the squares of its entries are kept the same way (:meth:`add_exits`); one with
     several entries per photon (:meth:`add_photons`) has each photon's entries squared together
     at every level and component (:func:`photon_moments`).
+
+    Sums into one bin are sequential in the order of the inputs, so their bits are fixed by the
+    photon schedule.  A bincount into a bin that every input reaches (a sum per configuration
+    with one configuration) is one chain of dependent additions through memory, ~4 ns a value;
+    those sums go through ``ordered_sum`` (:func:`ordered_sum`'s bits), which a caller may
+    replace by a faster implementation of the same sequential sum.
     """
 
-    def __init__(self, estimators: list[str], n_cfg: int, hist_shape: tuple[int, ...]):
+    def __init__(self, estimators: list[str], n_cfg: int, hist_shape: tuple[int, ...], ordered_sum: Callable[[np.ndarray], float] = ordered_sum):
         self.layout = TallyLayout(n_cfg, hist_shape)
         self.estimators = list(estimators)
         self.n_cfg = n_cfg
+        self.ordered_sum = ordered_sum
         size2 = self.layout.size["bins"] // 3 * 2
         # estimator -> [5, size2]: G, G^2, S, S^2, events per (cfg, comp, spatial, direction)
         self.linear = {e: np.zeros((5, size2)) for e in self.estimators}
@@ -165,7 +185,14 @@ class PhotonAccumulator:
         f, g, s = flat2.ravel("K"), g.ravel("K"), s.ravel("K")
         for row, w in ((0, g), (2, s), (4, (g != 0.0).astype(np.float64))):  # rows 1, 3 unused: squares kept below
             acc[row] += np.bincount(f, weights=w, minlength=acc.shape[1])
-        sq = np.bincount(square_key.ravel("K"), weights=square_weight.ravel("K"), minlength=int(self.layout.square_offsets[-1]))
+        size = int(self.layout.square_offsets[-1])
+        if self.n_cfg == 1:  # Rd's rows each add to one bin: summed in order, apart (no other row reaches Rd's bins)
+            sq = np.bincount(square_key[:-RD_SQUARE_ROWS].ravel("K"), weights=square_weight[:-RD_SQUARE_ROWS].ravel("K"), minlength=size)
+            for row in range(len(square_key) - RD_SQUARE_ROWS, len(square_key)):
+                if square_key.shape[1]:
+                    sq[square_key[row, 0]] += self.ordered_sum(square_weight[row])
+        else:
+            sq = np.bincount(square_key.ravel("K"), weights=square_weight.ravel("K"), minlength=size)
         fold_square_totals(sq, self.layout)
         if estimator in self.squares:
             self.squares[estimator] += sq
@@ -183,6 +210,11 @@ class PhotonAccumulator:
             if not nonzero.any():
                 continue
             acc = self.walk[q]
+            if self.n_cfg == 1:  # one bin: sequential sums (class docstring)
+                acc[0, 0] += self.ordered_sum(v)
+                acc[1, 0] += self.ordered_sum(v * v)
+                acc[2, 0] += np.count_nonzero(nonzero)
+                continue
             acc[0] += np.bincount(cfg, weights=v, minlength=self.n_cfg)
             acc[1] += np.bincount(cfg, weights=v * v, minlength=self.n_cfg)
             acc[2] += np.bincount(cfg[nonzero], minlength=self.n_cfg)

@@ -30,7 +30,15 @@ from .plan import DEEP_TAIL_AFTER, EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, V
 from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally, entry_square_keys
 from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
-__all__ = ["run_shard"]
+__all__ = ["ordered_sum", "run_shard"]
+
+
+def ordered_sum(values: np.ndarray) -> float:
+    """:func:`workers.fold.tally.ordered_sum` with the same bits, ~6x faster: torch's cumulative
+    sum of float64 on the CPU is one loop that carries the running sum in a register, (((0 + v_0)
+    + v_1) + ...), where numpy's stores and reloads it (0.6 against 3.3 ns a value, and 4 in a
+    bincount; tests/workers/test_tally.py checks the bits)."""
+    return torch.cumsum(torch.from_numpy(values), 0)[-1].item() + 0.0 if values.size else 0.0
 
 
 @dataclass(frozen=True)
@@ -80,7 +88,7 @@ class _Runner:
         photon_estimators = [e for e in plan.estimators if e not in BATCH_ESTIMATORS]
         ranges = plan.spec.batch_photon_ranges(plan.shard_index)
         self.acc = BatchAccumulator(batch_estimators, plan.cfgs.n, plan.layout.shape, ranges)
-        self.photons = PhotonAccumulator(photon_estimators, plan.cfgs.n, plan.layout.shape)
+        self.photons = PhotonAccumulator(photon_estimators, plan.cfgs.n, plan.layout.shape, ordered_sum=ordered_sum)
         self.members = None  # a shared walk's other albedos (workers.fold.reweight)
         if members:
             walked = set(plan.cfgs.albedo.tolist())
@@ -128,7 +136,7 @@ class _Runner:
             return 0, launched
         rec = dict(zip((n for n in names if n != "steps"), (np.concatenate(v) for v in zip(*outs))))
         # Lanes that hold no finished photon (or no exit) have records of weight 0 (the spare key,
-        # whose configuration is 0; flat 0): added to a sum they leave it as it is, bit for bit,
+        # whose configuration is 0; flat spread over bins): added to a sum they leave it as it is, bit for bit,
         # and they are no events (those count nonzero weights), so the tallies take every record
         # without selecting them first; the members select, to reweight.
         key = rec["key"]

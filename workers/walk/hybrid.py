@@ -44,7 +44,7 @@ import torch
 
 from .binning import TWO_PI, direction_index, histogram_index, sector_index
 from .conventions import PURPOSE_CONNECT
-from .harvest import ExitBins, exit_bins
+from .harvest import ExitBins, exit_bins, spread_mask
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, refracted_cos, sample_exponential, scatter_direction, transmittance_cos_ratio
 from .phase import DEFAULT_PHASE, phase_function
@@ -221,7 +221,8 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     (at the exit's total key), the components' squares being added to it once per block:
     Q = 3 (E + 1) + 3 values per photon, where squaring every entry at every level and component
     took 8 E (18 against 32 at E = 4; bincounting them was the hybrid's largest Python cost).
-    Rd's single part is one value, (sum of the single G)^2.
+    Rd's single part is one value, (sum of the single G)^2; Rd's three rows come last.  Where
+    the phase sample's values are 0, their keys are spread over the bins (below).
 
     The results are contiguous along the photons (flat2, G and S are views of [E, P] storage):
     computed as columns over the photons, the kernel is one vectorized loop (built as [P, E],
@@ -249,11 +250,12 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
         (lambda c, j: (cfg * 3 + c) * n_r1 + torch.div(spatial[j], lay.n_theta, rounding_mode="floor") + o_radial, g),
     )
     zero = torch.zeros_like(g[0])
-    keys, weights = [], []
+    keys, weights, phase_rows = [], [], []
     for key_of, value in levels:
         single = [key_of(0, j) for j in range(ns)]
         for j in range(ns):
             cross = sum((torch.where(single[i] == single[j], value[i], 0.0) for i in range(j + 1, ns)), zero)
+            phase_rows += [len(keys)] if j == ns - 1 else []
             keys.append(single[j])
             weights.append(value[j] * (value[j] + 2.0 * cross))
         x_e = value[ns]
@@ -263,6 +265,16 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
         shared = sum((torch.where(single[j] == at_exit, value[j], 0.0) for j in range(ns)), zero)
         keys.append(key_of(2, ns))
         weights.append(2.0 * x_e * shared)
+    # The phase sample's values of 0 go to spread keys (workers.walk.harvest.spread_mask): it
+    # points down for half the photons, and its zeros in one bin made one chain of dependent
+    # additions in each bincount.  (Spreading every entry's zeros cost the kernel more than it
+    # saved.)
+    pos = torch.arange(idx.shape[0], dtype=torch.int64)
+    spread_sq = o_bins_g + (pos & spread_mask(o_bins_s - o_bins_g))
+    phase = ns - 1
+    flat2[phase] = torch.where((g[phase] == 0.0) & (s[phase] == 0.0), pos & spread_mask(2 * lay.n_sp * lay.n_dir), flat2[phase])
+    for at in phase_rows:
+        keys[at] = torch.where(weights[at] == 0.0, spread_sq, keys[at])
     g_single, g_e = sum(g[:ns], zero), g[ns]
     keys += [cfg * 3 + c + o_rd for c in range(3)]
     weights += [g_single * g_single, g_e * g_e, 2.0 * g_e * g_single]
