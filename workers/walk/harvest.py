@@ -131,7 +131,7 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
 
 def spread_mask(n_bins: int) -> int:
     """Where entries of weight 0 go: flat j & spread_mask(n), the largest power of two <= n
-    bins, minus one (an AND, where a vector remainder of int64 is a scalar loop).  The tallies
+    bins, minus one (j is the position in the block).  The tallies
     take every record without selecting (selecting costs more than adding the zeros), and +0.0
     leaves any sum of non-negative values as it is, in whatever bin; but zeros all in one bin
     make the bincount one chain of dependent additions through memory (a third of M2's photons
