@@ -186,11 +186,10 @@ class PhotonAccumulator:
         for row, w in ((0, g), (2, s), (4, (g != 0.0).astype(np.float64))):  # rows 1, 3 unused: squares kept below
             acc[row] += np.bincount(f, weights=w, minlength=acc.shape[1])
         size = int(self.layout.square_offsets[-1])
-        if self.n_cfg == 1:  # Rd's rows each add to one bin: summed in order, apart (no other row reaches Rd's bins)
+        if self.n_cfg == 1 and square_key.shape[1]:  # Rd's rows each add to one bin: summed in order, apart (no other row reaches Rd's bins)
             sq = np.bincount(square_key[:-RD_SQUARE_ROWS].ravel("K"), weights=square_weight[:-RD_SQUARE_ROWS].ravel("K"), minlength=size)
             for row in range(len(square_key) - RD_SQUARE_ROWS, len(square_key)):
-                if square_key.shape[1]:
-                    sq[square_key[row, 0]] += self.ordered_sum(square_weight[row])
+                sq[square_key[row, 0]] += self.ordered_sum(square_weight[row])
         else:
             sq = np.bincount(square_key.ravel("K"), weights=square_weight.ravel("K"), minlength=size)
         fold_square_totals(sq, self.layout)

@@ -44,7 +44,7 @@ import torch
 
 from .binning import TWO_PI, direction_index, histogram_index, sector_index
 from .conventions import PURPOSE_CONNECT
-from .harvest import ExitBins, exit_bins, spread_mask
+from .harvest import ExitBins, exit_bins, spread_bins, spread_mask
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, refracted_cos, sample_exponential, scatter_direction, transmittance_cos_ratio
 from .phase import DEFAULT_PHASE, phase_function
@@ -272,7 +272,7 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     pos = torch.arange(idx.shape[0], dtype=torch.int64)
     spread_sq = o_bins_g + (pos & spread_mask(o_bins_s - o_bins_g))
     phase = ns - 1
-    flat2[phase] = torch.where((g[phase] == 0.0) & (s[phase] == 0.0), pos & spread_mask(2 * lay.n_sp * lay.n_dir), flat2[phase])
+    flat2[phase] = torch.where((g[phase] == 0.0) & (s[phase] == 0.0), pos & spread_mask(spread_bins(bins)), flat2[phase])
     for at in phase_rows:
         keys[at] = torch.where(weights[at] == 0.0, spread_sq, keys[at])
     g_single, g_e = sum(g[:ns], zero), g[ns]
