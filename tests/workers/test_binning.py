@@ -17,7 +17,7 @@ from schema import azimuth_edges, uniform_edges
 from tests.support.stats import assert_chi2
 from tests.reference.binning import azimuth_edge_index, edge_index, searched
 from workers.fold.configs import BinLayout
-from workers.walk.binning import TWO_PI, _edge_function, azimuth_index, outgoing_azimuth, uniform_index, wrap_angle
+from workers.walk.binning import TWO_PI, _edge_function, azimuth_index, exact_divmod, outgoing_azimuth, uniform_index, wrap_angle
 
 # Two channels with different radial edges (mm), same bin count.
 RADIAL = np.array(
@@ -346,3 +346,39 @@ def test_outgoing_azimuth_counterclockwise(dtype):
     diff = np.angle(np.exp(1j * (phi.double().numpy() - alpha)))  # wrapped difference
     np.testing.assert_allclose(diff, 0.0, atol=tol * 10)
     assert bool((phi >= 0).all()) and bool((phi < TWO_PI).all())
+
+
+def _divmod_cases() -> tuple[list[int], torch.Tensor]:
+    """Divisors from 1 to 2**40, and for each, dividends at and beside its multiples from 0 up
+    to just below 2**50 (where the quotient's rounding comes closest to an integer)."""
+    divisors = [1, 2, 3, 7, 12, 64, 100, 1000, 4097, 2**20 + 7, 2**30 - 1, 2**40 + 1]
+    rows = []
+    for n in divisors:
+        top = (2**50 - 1) // n
+        k = torch.cat((torch.arange(0, 2000), torch.randint(0, top, (4000,), generator=torch.Generator().manual_seed(n)), torch.arange(top - 2000, top)))
+        a = (k[:, None] * n + torch.tensor([-1, 0, 1])).reshape(-1)
+        rows.append(a[(a >= 0) & (a < 2**50)])
+    return divisors, rows
+
+
+def test_exact_divmod_is_integer_division():
+    """exact_divmod (float64, so that compiled kernels divide in vectors) equals int64 // and %
+    beside every kind of multiple, with the divisor an int or a 0-d tensor (as the harvest
+    passes it)."""
+    for n, a in zip(*_divmod_cases()):
+        for divisor in (n, torch.tensor(n)):
+            q, r = exact_divmod(a, divisor)
+            assert q.dtype == torch.int64 and r.dtype == torch.int64
+            assert torch.equal(q, a // n) and torch.equal(r, a % n), n
+
+
+def test_exact_divmod_compiled():
+    """The same through inductor, whose generated code rounds on its own: the divisor baked in as
+    a constant (the hybrid's theta_s count) and as a tensor (the harvest's configuration count)."""
+    divisors, rows = _divmod_cases()
+    by_tensor = torch.compile(exact_divmod, dynamic=True, fullgraph=True)
+    for n, a in zip(divisors, rows):
+        assert all(torch.equal(x, y) for x, y in zip(by_tensor(a, torch.tensor(n)), (a // n, a % n))), n
+    for n, a in list(zip(divisors, rows))[2::3]:
+        baked = torch.compile(lambda a, n=n: exact_divmod(a, n), fullgraph=True)
+        assert all(torch.equal(x, y) for x, y in zip(baked(a), (a // n, a % n))), n

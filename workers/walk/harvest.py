@@ -59,13 +59,13 @@ from functools import lru_cache
 
 import torch
 
-from .binning import direction_index, histogram_index, sector_index
+from .binning import direction_index, exact_divmod, histogram_index, sector_index
 from .kernels import compile_kernel
 from .optics import refracted_cos
 from .search import EdgeIndex, count_le, indexed_count_le
 from .walk import EMPTY, EXITED, RUNNING, TRUNCATED, ConfigTable, Lanes, refill_at
 
-__all__ = ["ExitBins", "batch_index", "exit_bins", "harvest_block", "harvest_fields", "harvest_function", "spread_bins", "spread_mask"]
+__all__ = ["ExitBins", "batch_index", "exit_bins", "exit_cells", "harvest_block", "harvest_fields", "harvest_function", "spread_bins", "spread_mask"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +112,15 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     flat: int64 histogram index [cfg, component, radial, theta_s, cos_o, phi_o]; batch: int64
     batch of the photon; G = w and S = w / cos_o float64.
     """
+    cfg, comp, _, spatial, direction, g, s = exit_cells(idx, lanes, bins)
+    flat = histogram_index(cfg, comp, spatial, direction, (bins.n_r + 1) * bins.n_theta, bins.n_cos * bins.n_phi)
+    return flat, batch_index(lanes.photon[idx], bins.batch_starts), g, s
+
+
+def exit_cells(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
+    """The parts of :func:`exit_bins`'s flat index, for a caller that keys other histograms by
+    them (the hybrid): (cfg, component, radial ir, spatial ir * n_theta + it, direction, G, S).
+    Taking a flat index apart again would divide int64 lane by lane (exact_divmod)."""
     cfg = lanes.cfg[idx]
     xd, yd = lanes.x[idx].double(), lanes.y[idx].double()
     r_mm = torch.sqrt(xd * xd + yd * yd) / bins.sigma_t[cfg]
@@ -121,12 +130,8 @@ def exit_bins(idx: torch.Tensor, lanes: Lanes, bins: ExitBins):
     cos_o = torch.clamp(refracted_cos(lanes.uz[idx].double(), bins.inv_eta), min=1e-300)
     direction = direction_index(cos_o, xd, yd, lanes.ux[idx].double(), lanes.uy[idx].double(), bins.n_cos, bins.n_phi)
     comp = (lanes.nscat[idx] >= 2).to(torch.int64)
-    n_sp = (bins.n_r + 1) * bins.n_theta
-    n_dir = bins.n_cos * bins.n_phi
-    flat = histogram_index(cfg, comp, ir * bins.n_theta + it, direction, n_sp, n_dir)
-    batch = batch_index(lanes.photon[idx], bins.batch_starts)
     wd = lanes.w[idx].double()
-    return flat, batch, wd, wd / cos_o
+    return cfg, comp, ir, ir * bins.n_theta + it, direction, wd, wd / cos_o
 
 
 def spread_mask(n_bins: int) -> int:
@@ -202,8 +207,8 @@ def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table:
     out = tuple(records[name] for name in harvest_fields(exits, members))  # read before the refill writes the lanes
     q = nxt + pos
     new = valid & (q < n_launch)
-    q = torch.where(new, q, 0)
-    refill_at(lanes, table, idx, start + q // n_cfg, q % n_cfg, new, valid)
+    photon, cfg = exact_divmod(torch.where(new, q, 0), n_cfg)
+    refill_at(lanes, table, idx, start + photon, cfg, new, valid)
     return out
 
 

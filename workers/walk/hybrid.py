@@ -42,9 +42,9 @@ from functools import lru_cache
 
 import torch
 
-from .binning import TWO_PI, direction_index, histogram_index, sector_index
+from .binning import TWO_PI, direction_index, exact_divmod, histogram_index, sector_index
 from .conventions import PURPOSE_CONNECT
-from .harvest import ExitBins, exit_bins, spread_bins, spread_mask
+from .harvest import ExitBins, exit_cells, spread_bins, spread_mask
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, refracted_cos, sample_exponential, scatter_direction, transmittance_cos_ratio
 from .phase import DEFAULT_PHASE, phase_function
@@ -99,9 +99,14 @@ class FirstVertexGeometry:
 
 
 def _stratum_size(flat_bin: torch.Tensor, n_bins: int, k: int) -> torch.Tensor:
-    """n_j of the stratum holding each flat bin: the stratum is the j with floor(j n / k) <= b."""
-    j = torch.div((flat_bin + 1) * k - 1, n_bins, rounding_mode="floor")  # largest j with j n / k <= b
-    return torch.div((j + 1) * n_bins, k, rounding_mode="floor") - torch.div(j * n_bins, k, rounding_mode="floor")
+    """n_j of the stratum holding each flat bin b in [0, n_bins): the last stratum whose start
+    floor(j n / k) is <= b, found by comparing with the k - 1 inner starts (k is a few; integer
+    division would run lane by lane in the compiled kernel: workers.walk.binning.exact_divmod)."""
+    bounds = strata(n_bins, k)
+    size = torch.full_like(flat_bin, bounds[0][1] - bounds[0][0])
+    for lo, hi in bounds[1:]:
+        size = torch.where(flat_bin >= lo, hi - lo, size)
+    return size
 
 
 def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVertexGeometry):
@@ -113,14 +118,15 @@ def first_vertex_samples(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVert
     spatial = r * n_theta + theta (r = n_r beyond r_max: phase sample only); G and S float64 (0
     where the phase direction points down or is totally reflected).
     """
-    spatial, direction, G, S = (torch.stack(c, dim=1) for c in zip(*_first_vertex_columns(photon, cfg, geo)))
+    spatial, direction, G, S, _ = (torch.stack(c, dim=1) for c in zip(*_first_vertex_columns(photon, cfg, geo)))
     return spatial, direction, G.double(), S.double()
 
 
 def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVertexGeometry):
-    """:func:`first_vertex_samples` as k + 1 columns (spatial, direction, G, S) of [P] tensors,
-    G and S float32: the compiled entries work on whole columns, which vectorize over the
-    photons (an [P, E] layout with E ~ 4 made inductor emit scalar loops)."""
+    """:func:`first_vertex_samples` as k + 1 columns (spatial, direction, G, S, radial) of [P]
+    tensors, G and S float32, radial the spatial bin's ring (spatial // n_theta, carried so
+    that no one divides it out again): the compiled entries work on whole columns, which
+    vectorize over the photons (an [P, E] layout with E ~ 4 made inductor emit scalar loops)."""
     f32 = torch.float32
     n_r, n_t = geo.n_r, geo.n_theta
     n_bins = n_r * n_t
@@ -169,7 +175,7 @@ def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVer
         u_bin, u_r, u_t = (uniform_halfopen(x) for x in u[:3])
         n_j = hi - lo
         b = lo + torch.clamp((u_bin * n_j).to(torch.int64), max=n_j - 1)
-        jr, jt = torch.div(b, n_t, rounding_mode="floor"), b % n_t
+        jr, jt = (b, torch.zeros_like(b)) if n_t == 1 else exact_divmod(b, n_t)
         r_lo = edges.gather(1, jr[:, None])[:, 0]
         drj = edges.gather(1, jr[:, None] + 1)[:, 0] - r_lo
         rr = r_lo + u_r * drj
@@ -185,8 +191,8 @@ def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVer
         qj = 1.0 / torch.clamp(n_j * rr * drj * dtheta, min=1e-30)
         bj = wa * torch.exp(-d) / (qpj + qj)
         dir_j = direction_index(refracted_cos(cin, 1.0 / geo.eta), xs, ys, dx, dy, geo.n_cos, geo.n_phi)
-        cols.append((b, dir_j, bj * fresnel_transmittance(cin, 1.0 / geo.eta) * qpj, bj * transmittance_cos_ratio(cin, 1.0 / geo.eta) * (pj / d2)))
-    cols.append((sp_p, dir_p, G_p, S_p))
+        cols.append((b, dir_j, bj * fresnel_transmittance(cin, 1.0 / geo.eta) * qpj, bj * transmittance_cos_ratio(cin, 1.0 / geo.eta) * (pj / d2), jr))
+    cols.append((sp_p, dir_p, G_p, S_p, ir))
     return cols
 
 
@@ -230,11 +236,12 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     """
     cfg = lanes.cfg[idx]
     cols = _first_vertex_columns(lanes.photon[idx], cfg, geo)
-    flat, _batch, ge, se = exit_bins(idx, lanes, bins)
+    _, _, ir_e, spatial_e, direction_e, ge, se = exit_cells(idx, lanes, bins)
     keep = (lanes.status[idx] == EXITED) & (lanes.nscat[idx] >= 2)
     # Columns e = 0 .. E - 1 of [P] tensors: the first-vertex samples (component 0), then the exit (1).
-    spatial = [c[0] for c in cols] + [torch.div(flat, lay.n_dir, rounding_mode="floor") % lay.n_sp]
-    direction = [c[1] for c in cols] + [flat % lay.n_dir]
+    spatial = [c[0] for c in cols] + [spatial_e]
+    direction = [c[1] for c in cols] + [direction_e]
+    radial = [c[4] for c in cols] + [ir_e]
     g = [c[2].double() for c in cols] + [torch.where(keep, ge, 0.0)]
     s = [c[3].double() for c in cols] + [torch.where(keep, se, 0.0)]
     e = len(spatial)
@@ -247,7 +254,7 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     levels = (  # (key of component c for entry j, values)
         (lambda c, j: bins3(c, j) + o_bins_g, g),
         (lambda c, j: bins3(c, j) + o_bins_s, s),
-        (lambda c, j: (cfg * 3 + c) * n_r1 + torch.div(spatial[j], lay.n_theta, rounding_mode="floor") + o_radial, g),
+        (lambda c, j: (cfg * 3 + c) * n_r1 + radial[j] + o_radial, g),
     )
     zero = torch.zeros_like(g[0])
     keys, weights, phase_rows = [], [], []
