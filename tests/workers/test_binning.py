@@ -348,7 +348,7 @@ def test_outgoing_azimuth_counterclockwise(dtype):
     assert bool((phi >= 0).all()) and bool((phi < TWO_PI).all())
 
 
-def _divmod_cases() -> tuple[list[int], torch.Tensor]:
+def _divmod_cases() -> tuple[list[int], list[torch.Tensor]]:
     """Divisors from 1 to 2**40, and for each, dividends at and beside its multiples from 0 up
     to just below 2**50 (where the quotient's rounding comes closest to an integer)."""
     divisors = [1, 2, 3, 7, 12, 64, 100, 1000, 4097, 2**20 + 7, 2**30 - 1, 2**40 + 1]

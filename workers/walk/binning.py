@@ -193,6 +193,9 @@ def exact_divmod(a: torch.Tensor, n) -> tuple[torch.Tensor, torch.Tensor]:
     one vector instruction.  Exact: with a = q n + r, 0 <= r < n, (a + 0.5) / n = q + (r + 0.5) / n
     lies at least 0.5 / n from an integer; a + 0.5 is exact in float64 and the quotient's rounding
     error, at most (q + 1) 2**-53, stays below 0.5 / n while (q + 1) n <= a + n < 2**51, so the
-    floor is q (tests/workers/test_binning.py checks it next to every multiple)."""
+    floor is q (tests/workers/test_binning.py checks it next to every multiple).  An int divisor of
+    1 (one theta_s bin, one configuration) needs no division at all."""
+    if isinstance(n, int) and n == 1:
+        return a, torch.zeros_like(a)
     q = torch.floor((a.to(torch.float64) + 0.5) / n).to(torch.int64)
     return q, a - q * n

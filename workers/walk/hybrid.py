@@ -175,7 +175,7 @@ def _first_vertex_columns(photon: torch.Tensor, cfg: torch.Tensor, geo: FirstVer
         u_bin, u_r, u_t = (uniform_halfopen(x) for x in u[:3])
         n_j = hi - lo
         b = lo + torch.clamp((u_bin * n_j).to(torch.int64), max=n_j - 1)
-        jr, jt = (b, torch.zeros_like(b)) if n_t == 1 else exact_divmod(b, n_t)
+        jr, jt = exact_divmod(b, n_t)
         r_lo = edges.gather(1, jr[:, None])[:, 0]
         drj = edges.gather(1, jr[:, None] + 1)[:, 0] - r_lo
         rr = r_lo + u_r * drj
