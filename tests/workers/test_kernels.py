@@ -211,3 +211,26 @@ def test_processes_wanting_the_same_kernel_compile_it_once(tmp_path):
     text = "".join(outs)
     assert text.count("result 58.0") == 2
     assert text.count("compiled and saved") == 1 and text.count("kernel loaded from") == 1, text
+
+
+def test_an_any_length_kernel_serves_every_chunk_length_from_one_artifact(tmp_path, monkeypatch):
+    """any_length (the walk's step kernel: a shard's chunk, then its tail's shorter chunks): one
+    compile and one artifact serve chunks of every length, in this kernel object and in a new
+    one (as in a new process), with the eager function's results; the caller's tensors are not
+    marked (a marked tensor fails a loaded kernel's guards), and the key leaves the length out."""
+    monkeypatch.setenv("BSSRDF_KERNEL_CACHE", str(tmp_path))
+    a, b = torch.zeros(112), torch.linspace(0.0, 1.0, 112)
+    chunks = [_Pair(a[lo:hi], b[lo:hi]) for lo, hi in ((0, 64), (64, 96), (96, 112))]
+    first = compile_kernel(_accumulate, "accumulate_any", any_length=True)
+    assert float(first(chunks[0], 2.0)[0]) == float((b[:64] * 2.0).sum())
+    assert float(first(chunks[1], 2.0)[0]) == float((b[64:96] * 2.0).sum())
+    saved = sorted(tmp_path.glob("accumulate_any-*.pt2"))
+    assert len(saved) == 1 and len(first.variants) == 1, "one compile for both lengths"
+    stamp = saved[0].stat().st_mtime_ns
+    loaded = compile_kernel(_accumulate, "accumulate_any", any_length=True)
+    assert float(loaded(chunks[2], 2.0)[0]) == float((b[96:] * 2.0).sum())
+    assert sorted(tmp_path.glob("accumulate_any-*.pt2")) == saved and saved[0].stat().st_mtime_ns == stamp, "loaded, not compiled"
+    assert torch.equal(a, b * 2.0), "every chunk written in place, nothing else"
+    assert not any(hasattr(t, "_dynamo_dynamic_indices") for c in chunks for t in (c.a, c.b))
+    key = lambda n, any_length: artifact_key("k", None, (_Pair(torch.zeros(n), torch.zeros(n)), 2.0), any_length)  # noqa: E731
+    assert key(64, True) == key(32, True) != key(64, False) != key(32, False)

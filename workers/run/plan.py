@@ -28,7 +28,7 @@ from workers.walk.walk import ConfigTable, WalkParams, compile_enabled
 
 __all__ = ["ShardPlan", "config_table", "chunk_count", "CHUNK", "VERTEX_CHUNK", "EXIT_BLOCK", "HARVEST_BLOCK", "HARVEST_DIVISOR"]
 
-CHUNK = 1 << 14  # lanes per call of the compiled step (one static shape for every shard); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
+CHUNK = 1 << 14  # lanes per call of the compiled step (the tail's chunks are shorter: one kernel serves every length); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
 CONNECT_CHUNK = 1 << 11  # lanes per call with connections: their kernel dominates, few photons run
 MAX_CHUNKS = 4  # 2^16 lanes in all: enough photons in flight to keep every chunk full

@@ -162,8 +162,8 @@ class _Runner:
         or None: once the tail chunk has run DEEP_TAIL_AFTER calls, the smallest of the deep
         tail's chunks that holds them, else the tail chunk.  A long tail -- an albedo-1 walk's
         last few hundred paths, stepped for tens of thousands of steps -- otherwise steps mostly
-        idle lanes; a short one never waits that long, so shards whose tails are short never need
-        (or compile) the deeper shapes."""
+        idle lanes; a short one never waits that long.  (Every chunk length is stepped by the same
+        compiled kernel: workers.walk.kernels.compile_kernel's any_length.)"""
         plan = self.plan
         if self.next_launch < plan.n_launch:
             return None

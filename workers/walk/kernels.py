@@ -9,8 +9,9 @@ process loads it instead of tracing.
 
 An artifact is keyed by everything that shapes the generated code:
 - the kernel's name and static constants (the WalkParams, steps per call, ...);
-- the kind, dtype and shape of every argument (tensors inside lists and dataclasses included) and
-  the values of non-tensor arguments (they are baked into the graph);
+- the kind, dtype and shape of every argument (tensors inside lists and dataclasses included;
+  not the length of a kernel compiled for any length, see :func:`compile_kernel`) and the values
+  of non-tensor arguments (they are baked into the graph);
 - torch and Python versions, the CPU's vector capability (an AVX-512 kernel cannot run on an
   AVX2 machine sharing the cache), the torch thread count (the kernels differ for 1 and more
   threads) and grad mode;
@@ -128,25 +129,29 @@ def source_digest() -> str:
     return h.hexdigest()
 
 
-def _describe(v: Any) -> Any:
-    """A hashable description of an argument: what the compiled graph is specialised on."""
+def _describe(v: Any, any_length: bool = False) -> Any:
+    """A hashable description of an argument: what the compiled graph is specialised on
+    (with any_length, a tensor's first dimension is not: :func:`compile_kernel`'s any_length)."""
     if isinstance(v, torch.Tensor):
-        return ("tensor", str(v.dtype), tuple(v.shape), tuple(v.stride()), v.device.type)
+        shape = ("any", *v.shape[1:]) if any_length else tuple(v.shape)
+        return ("tensor", str(v.dtype), shape, tuple(v.stride()), v.device.type)
     if isinstance(v, (list, tuple)):
-        return (type(v).__name__, tuple(_describe(x) for x in v))
+        return (type(v).__name__, tuple(_describe(x, any_length) for x in v))
     if dataclasses.is_dataclass(v) and not isinstance(v, type):
-        return (type(v).__qualname__, tuple((f.name, _describe(getattr(v, f.name))) for f in dataclasses.fields(v)))
+        return (type(v).__qualname__, tuple((f.name, _describe(getattr(v, f.name), any_length)) for f in dataclasses.fields(v)))
     if isinstance(v, (bool, int, float, str, type(None))):
         return (type(v).__name__, repr(v))
     raise TypeError(f"compile_kernel: cannot key an argument of type {type(v).__name__}")
 
 
-def artifact_key(name: str, constants: Any, args: tuple) -> str:
+def artifact_key(name: str, constants: Any, args: tuple, any_length: bool = False) -> str:
     """sha256 naming the artifact of kernel `name` with these constants, called with `args`
     (see the module docstring for what it covers; INDUCTOR_CONFIG is part of it, inductor
-    settings from the environment are not)."""
+    settings from the environment are not; with any_length, the first argument's first
+    dimension is left out: :func:`compile_kernel`)."""
+    described = (_describe(args[0], True), *map(_describe, args[1:])) if any_length else _describe(args)
     parts = (
-        name, repr(constants), _describe(args), torch.__version__, sys.version_info[:2], torch.backends.cpu.get_cpu_capability(),
+        name, repr(constants), described, any_length, torch.__version__, sys.version_info[:2], torch.backends.cpu.get_cpu_capability(),
         torch.get_num_threads(), torch.is_grad_enabled(), source_digest(), sorted(INDUCTOR_CONFIG.items()),
     )  # fmt: skip
     return hashlib.sha256(repr(parts).encode()).hexdigest()
@@ -232,8 +237,8 @@ class _Kernel:
     a short kernel.
     """
 
-    def __init__(self, fn: Callable, name: str, constants: Any):
-        self.fn, self.name, self.constants = fn, name, constants
+    def __init__(self, fn: Callable, name: str, constants: Any, any_length: bool = False):
+        self.fn, self.name, self.constants, self.any_length = fn, name, constants, any_length
         self.variants: list[Callable] = []
         self.direct: dict[Any, Callable] = {}
         self.lazy: set[int] = set()  # ids of variants that compile on their first call (no artifact cache)
@@ -283,7 +288,7 @@ class _Kernel:
         if directory is None or not hasattr(compiler, "aot_compile"):
             self.lazy.add(id(compiler))
             return compiler
-        path = directory / f"{self.name}-{artifact_key(self.name, self.constants, args)[:24]}.pt2"
+        path = directory / f"{self.name}-{artifact_key(self.name, self.constants, args, self.any_length)[:24]}.pt2"
         stamp = _stamp(path)
         if stamp is not None and (loaded := _load(path)) is not None:
             return loaded
@@ -292,7 +297,7 @@ class _Kernel:
             if _stamp(path) not in (None, stamp) and (loaded := _load(path)) is not None:
                 return loaded
             with torch._inductor.config.patch(INDUCTOR_CONFIG):
-                compiled = compiler.aot_compile((args, {}))
+                compiled = compiler.aot_compile((_any_length(args) if self.any_length else args, {}))
             try:
                 compiled.save_compiled_function(str(path))
             except OSError as exc:  # e.g. a read-only home in a container: run, just do not keep it
@@ -300,6 +305,25 @@ class _Kernel:
             else:
                 log.info("kernel %s compiled and saved to %s", self.name, path)
         return compiled
+
+
+def _any_length(args: tuple) -> tuple:
+    """The example arguments to compile with any length along the first argument's first
+    dimension: that argument rebuilt with aliases of its tensors marked dynamic there (the
+    caller's tensors stay unmarked: a tensor marked at run time fails the loaded kernel's guards)."""
+
+    def alias(v: Any) -> Any:
+        if isinstance(v, torch.Tensor):
+            a = v.view(v.shape)
+            torch._dynamo.mark_dynamic(a, 0)
+            return a
+        if isinstance(v, (list, tuple)):
+            return type(v)(map(alias, v))
+        if dataclasses.is_dataclass(v) and not isinstance(v, type):
+            return dataclasses.replace(v, **{f.name: alias(getattr(v, f.name)) for f in dataclasses.fields(v) if f.init})
+        return v
+
+    return (alias(args[0]), *args[1:])
 
 
 def _stamp(path: Path) -> int | None:
@@ -346,17 +370,25 @@ def _file_lock(path: Path):
         os.close(fd)  # closing releases the lock
 
 
-def compile_kernel(fn: Callable, name: str, constants: Any = None) -> Callable:
+def compile_kernel(fn: Callable, name: str, constants: Any = None, any_length: bool = False) -> Callable:
     """fn compiled for static shapes (fullgraph), kept on disk between processes.
 
     name and constants (anything with a faithful repr: the values fn closes over) identify the
     kernel; the arguments of the first call (and of any later call with other shapes) complete
-    the key.  The artifact specialises on those shapes, so callers pass fixed-size chunks.
+    the key.  The artifact specialises on those shapes, so callers pass fixed-size chunks (but
+    see any_length below).
 
     Arguments may be tensors, and lists and dataclasses of them, passed whole (a structure of
     arrays such as :class:`workers.walk.walk.Lanes` or a chunk of views into one): the guards read
     their fields, no pytree registration is needed, and in-place writes reach the viewed
     storage.  Results are tensors or tuples of them: a loaded artifact would rebuild a dataclass
     result by its class name, which ``load_compiled_function`` cannot resolve.
+
+    any_length: the first argument's tensors are compiled for any length along their first
+    dimension (one symbol; they must all have it).  The walk's step kernel takes a chunk of lanes,
+    and a shard steps chunks of several lengths (its chunk, then its tail's shorter ones): one
+    kernel serves them all, where a kernel per length cost a compile each (minutes on a slow
+    core, BENCHMARKS.md).  The lengths must be multiples of the vector width (every chunk is:
+    workers.run.plan), or the last lanes run in a scalar loop.
     """
-    return _Kernel(fn, name, constants)
+    return _Kernel(fn, name, constants, any_length)

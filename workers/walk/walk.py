@@ -298,4 +298,4 @@ def step_function(p: WalkParams, n_steps: int, want_vertices: bool, compiled: bo
     def fn(lanes: Lanes):
         return _step_inplace(lanes, p, n_steps, want_vertices)
 
-    return compile_kernel(fn, "walk_step", (p, n_steps, want_vertices)) if compiled else fn
+    return compile_kernel(fn, "walk_step", (p, n_steps, want_vertices), any_length=True) if compiled else fn
