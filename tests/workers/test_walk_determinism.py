@@ -241,6 +241,18 @@ def test_compiled_exit_walk_with_its_tail_chunk_agrees_with_eager(walk_stats):
     walk_stats.assert_within(z_of("exits/radial_G", (slice(None), 2)), dof, "compiled (with tail) vs eager: Rd(r), total")
 
 
+def test_every_chunk_length_a_compiled_shard_steps_is_a_multiple_of_the_vector_width():
+    """One step kernel serves every chunk length (workers.walk.kernels.compile_kernel's
+    any_length).  Lanes past the last multiple of the vector width (16 float32 lanes with
+    AVX-512) would run in the kernel's scalar loop, whose math functions may round differently,
+    and a photon's result would depend on its lane."""
+    from workers.run import plan
+
+    lengths = [plan.CHUNK, plan.CONNECT_CHUNK, plan.CHUNK // plan.TAIL_DIVISOR, *(plan.CHUNK // d for d in plan.DEEP_TAIL_DIVISORS)]
+    divisors = (plan.TAIL_DIVISOR, *plan.DEEP_TAIL_DIVISORS)
+    assert all(n % 16 == 0 for n in lengths) and all(plan.CHUNK % d == 0 for d in divisors), (lengths, divisors)
+
+
 def test_a_long_tail_stepped_in_the_deep_tail_chunks_tallies_the_same_photons(walk_spec, monkeypatch):
     """The last photons of a long tail (albedo 1: a few paths of thousands of steps) move to ever
     smaller chunks (workers.run.shard: tail_target).  Moving lanes changes no photon's path, only

@@ -388,7 +388,9 @@ def compile_kernel(fn: Callable, name: str, constants: Any = None, any_length: b
     dimension (one symbol; they must all have it).  The walk's step kernel takes a chunk of lanes,
     and a shard steps chunks of several lengths (its chunk, then its tail's shorter ones): one
     kernel serves them all, where a kernel per length cost a compile each (minutes on a slow
-    core, BENCHMARKS.md).  The lengths must be multiples of the vector width (every chunk is:
-    workers.run.plan), or the last lanes run in a scalar loop.
+    core, BENCHMARKS.md).  The lengths must be multiples of the vector width (every chunk is a
+    power of two of at least 128 lanes: workers.run.plan): lanes past the last multiple would
+    run in the scalar loop, whose math functions may round differently from the vector ones, and
+    a photon's result would then depend on its lane.
     """
     return _Kernel(fn, name, constants, any_length)
