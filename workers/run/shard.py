@@ -26,7 +26,7 @@ from workers.walk.harvest import harvest_fields, harvest_function
 from workers.walk.hybrid import entries_function
 from workers.walk.path_roulette import check_steps_per_call
 from workers.fold.reweight import MemberTallies, member_prefix
-from .plan import DEEP_TAIL_AFTER, EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, VERTEX_CHUNK, ShardPlan
+from .plan import DEEP_TAIL_AFTER, ENTRIES_CALL, EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, LANE_MULTIPLE, VERTEX_CHUNK, ShardPlan
 from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally, entry_square_keys
 from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
@@ -113,9 +113,9 @@ class _Runner:
     def finish_and_refill(self, idx: torch.Tensor) -> tuple[int, int]:
         """Record the finished photons of lanes idx (ascending lanes not running; the hybrid's
         entries must be tallied already) and launch the next photons into those lanes, in lane
-        order: :func:`workers.walk.harvest.harvest_block` over HARVEST_BLOCK lanes at a time, so
-        the work is per lane harvested, not per lane of the array.  The exit tally's entries come
-        from the same pass.  Returns (photons finished, photons launched)."""
+        order: :func:`workers.walk.harvest.harvest_block` over up to HARVEST_BLOCK lanes at a time,
+        so the work is per lane harvested, not per lane of the array.  The exit tally's entries
+        come from the same pass.  Returns (photons finished, photons launched)."""
         plan, L = self.plan, self.lanes
         launched = min(len(idx), plan.n_launch - self.next_launch)
         outs = []
@@ -124,8 +124,9 @@ class _Runner:
         for a in range(0, len(idx), HARVEST_BLOCK):
             block = idx[a : a + HARVEST_BLOCK]
             m = len(block)
-            if m < HARVEST_BLOCK and plan.compiled:  # one static shape: pad with the scratch lane
-                block = torch.cat((block, torch.full((HARVEST_BLOCK - m,), plan.n_lanes, dtype=torch.int64)))
+            pad = -m % LANE_MULTIPLE if plan.compiled else 0
+            if pad:  # the kernel takes any multiple of the vector width: pad with the scratch lane
+                block = torch.cat((block, torch.full((pad,), plan.n_lanes, dtype=torch.int64)))
             self.launch[1] = self.next_launch + a  # written in place: building two small tensors a block cost ~1 % of a short walk
             self.n_valid.fill_(m)
             out = self.kernels.harvest(block, self.n_valid, L, plan.table, self.launch, plan.exit_bins)
@@ -222,16 +223,22 @@ class _Runner:
 
     # -- exit estimator and hybrid ------------------------------------------------------------
     def _blocks(self, idx: torch.Tensor, fn, axis: tuple[int, ...] | None = None):
-        """fn(block) over EXIT_BLOCK lanes of idx at a time (in lane order), as numpy arrays: the
-        compiled kernels have one static shape, so the last block is padded with its first lane
-        and cut (along the lane axis of each output: `axis`, default 0)."""
-        for a in range(0, len(idx), EXIT_BLOCK):
-            block = idx[a : a + EXIT_BLOCK]
+        """fn(block) over up to ENTRIES_CALL lanes of idx per call (in lane order), yielded as
+        numpy arrays EXIT_BLOCK photons at a time: the unit in which the tallies add, which fixes
+        the association of their float sums (so the call's length changes no bit).  The
+        compiled kernel takes any multiple of the vector width: a call is padded with its first
+        lane, and the padding cut (along the lane axis of each output: `axis`, default 0)."""
+        for a in range(0, len(idx), ENTRIES_CALL):
+            block = idx[a : a + ENTRIES_CALL]
             m = len(block)
-            if m < EXIT_BLOCK and self.plan.compiled:
-                block = torch.cat((block, block[:1].expand(EXIT_BLOCK - m)))
-            out = fn(block)
-            yield [(v[:m] if ax == 0 else v[:, :m]).numpy() for v, ax in zip(out, axis or (0,) * len(out))]
+            pad = -m % LANE_MULTIPLE if self.plan.compiled else 0
+            if pad:
+                block = torch.cat((block, block[:1].expand(pad)))
+            out = [v.numpy() for v in fn(block)]
+            axes = axis or (0,) * len(out)
+            for b in range(0, m, EXIT_BLOCK):
+                e = min(b + EXIT_BLOCK, m)
+                yield [v[b:e] if ax == 0 else v[:, b:e] for v, ax in zip(out, axes)]
 
     def tally_hybrid(self, idx: torch.Tensor) -> None:
         """The hybrid estimator's entries of the photons finished in lanes idx: the first-vertex

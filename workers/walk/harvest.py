@@ -215,9 +215,10 @@ def harvest_block(idx: torch.Tensor, n_valid: torch.Tensor, lanes: Lanes, table:
 @lru_cache(maxsize=None)
 def harvest_function(compiled: bool, exits: bool = True, members: bool = True):
     """:func:`harvest_block` with or without the exit tally's lookup and the members' records
-    (:func:`harvest_fields`), compiled for one block size (the caller pads) or eager."""
+    (:func:`harvest_fields`), compiled for any block length (a multiple of the vector width: the
+    caller pads) or eager."""
 
     def fn(idx, n_valid, lanes, table, launch, bins):
         return harvest_block(idx, n_valid, lanes, table, launch, bins, exits, members)
 
-    return compile_kernel(fn, "harvest_block", (exits, members)) if compiled else fn
+    return compile_kernel(fn, "harvest_block", (exits, members), any_length=True) if compiled else fn

@@ -291,5 +291,6 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
 
 @lru_cache(maxsize=None)
 def entries_function(compiled: bool):
-    """:func:`photon_entries` compiled for one block size (the caller pads) or eager."""
-    return compile_kernel(photon_entries, "hybrid_entries") if compiled else photon_entries
+    """:func:`photon_entries` compiled for any number of photons (a multiple of the vector width:
+    the caller pads) or eager."""
+    return compile_kernel(photon_entries, "hybrid_entries", any_length=True) if compiled else photon_entries
