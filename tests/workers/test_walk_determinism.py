@@ -279,23 +279,21 @@ def test_a_long_tail_stepped_in_the_deep_tail_chunks_tallies_the_same_photons(wa
 
 
 def test_the_length_of_a_kernel_call_changes_no_bit(walk_spec, monkeypatch):
-    """The harvest and the hybrid's entries run on up to HARVEST_BLOCK / ENTRIES_CALL lanes per
-    call, any multiple of the vector width (workers.run.shard).  The hybrid's entries are added
-    to the tallies EXIT_BLOCK photons at a time whatever the call's length, which fixes the
-    association of the float sums, and the harvest's records are summed over the whole harvest:
-    so shorter or longer calls give the same bytes, members included (eager engine: the same
-    slicing code as the compiled one, no compile)."""
+    """The harvest (with the hybrid's entries) runs on up to HARVEST_BLOCK lanes per call, any
+    multiple of the vector width (workers.run.shard).  The hybrid's entries are added to the
+    tallies EXIT_BLOCK photons at a time whatever the call's length, which fixes the association
+    of the float sums, and the harvest's records are summed over the whole harvest: so shorter or
+    longer calls give the same bytes, members included (eager engine: the same slicing code as
+    the compiled one, no compile)."""
     import workers.run.shard as shard
 
     monkeypatch.setenv("BSSRDF_COMPILE", "0")
     spec = walk_spec(sigma_a=0.1, sigma_s=0.9, eta=1.0, photons=6000, estimator="hybrid", seed=5, shards=1, batches_per_shard=4)
     monkeypatch.setattr(shard, "EXIT_BLOCK", 256)  # several additions per call, and a short last one
     digests = []
-    for entries_call, harvest_block in ((256, 256), (1024, 3 * 256), (1 << 14, 1 << 14)):
-        monkeypatch.setattr(shard, "ENTRIES_CALL", entries_call)
+    for harvest_block in (256, 3 * 256, 1 << 14):
         monkeypatch.setattr(shard, "HARVEST_BLOCK", harvest_block)
-        t = run_shard(spec, 0, members=(0.7,))
-        digests.append(tally_digest(t))
+        digests.append(tally_digest(run_shard(spec, 0, members=(0.7,))))
     assert digests[0] == digests[1] == digests[2]
 
 
@@ -304,5 +302,4 @@ def test_a_kernel_call_holds_whole_tally_blocks():
     block (test above), and every length a compiled call may have is a multiple of the vector width."""
     from workers.run import plan
 
-    assert plan.ENTRIES_CALL % plan.EXIT_BLOCK == 0 and plan.EXIT_BLOCK % plan.LANE_MULTIPLE == 0
-    assert plan.HARVEST_BLOCK % plan.LANE_MULTIPLE == 0 and plan.LANE_MULTIPLE == 16
+    assert plan.HARVEST_BLOCK % plan.EXIT_BLOCK == 0 and plan.EXIT_BLOCK % plan.LANE_MULTIPLE == 0 and plan.LANE_MULTIPLE == 16

@@ -3,7 +3,7 @@
 A shard of the bench's medium runs in this process on one torch thread, as a worker runs it,
 with every kernel call wrapped by a timer of this thread's CPU time: the step kernel (lanes
 advanced ``n_steps`` interactions per call), the harvest kernel (finished lanes recorded and
-refilled), the hybrid's entries and the connections.  What is left of the shard's CPU is the
+refilled; for the hybrid also its entries, made in the same pass) and the connections.  What is left of the shard's CPU is the
 Python around them (finding the finished lanes, moving the kernels' outputs into numpy, the
 tallies' bincounts, call wrappers and guards).  Per photon and per lane-step figures make the
 parts comparable with the C walk's whole step.

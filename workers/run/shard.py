@@ -23,10 +23,10 @@ from workers.walk.binning import histogram_index
 from workers.walk.connections import Vertices, VertexBuffer, connection_function
 from workers.walk.engine import init_engine
 from workers.walk.harvest import harvest_fields, harvest_function
-from workers.walk.hybrid import entries_function
+from workers.walk.hybrid import ENTRY_OUTPUTS, harvest_entries_function
 from workers.walk.path_roulette import check_steps_per_call
 from workers.fold.reweight import MemberTallies, member_prefix
-from .plan import DEEP_TAIL_AFTER, ENTRIES_CALL, EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, LANE_MULTIPLE, VERTEX_CHUNK, ShardPlan
+from .plan import DEEP_TAIL_AFTER, EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, LANE_MULTIPLE, VERTEX_CHUNK, ShardPlan
 from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally, entry_square_keys
 from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
@@ -46,8 +46,8 @@ class _Kernels:
     """The (compiled or eager) functions a shard run calls, chosen once from its plan."""
 
     step: Callable  # steps a chunk of lanes in place (workers.walk.walk.step_function)
-    harvest: Callable  # records lanes not running and refills them (workers.walk.harvest.harvest_block): harvest_fields(exits, members)
-    entries: Callable  # the hybrid's entries per photon (workers.walk.hybrid.photon_entries)
+    harvest: Callable  # records lanes not running and refills them (workers.walk.harvest.harvest_block): harvest_fields(exits, members),
+    # after the hybrid's entries per photon for the hybrid (workers.walk.hybrid.harvest_with_entries)
     connect: Callable  # both connection techniques for a chunk of vertices
 
     @classmethod
@@ -55,10 +55,8 @@ class _Kernels:
         """The plan's kernels (members: the walk has reweighted members); wrap(name, kernel), if
         given, replaces each (a profiler's timer)."""
         c = plan.compiled
-        kernels = cls(
-            step=step_function(plan.params, plan.n_steps, plan.connect, c), harvest=harvest_function(c, "exits" in plan.estimators, members),
-            entries=entries_function(c), connect=connection_function(c),
-        )  # fmt: skip
+        harvest = harvest_entries_function(c, members) if "hybrid" in plan.estimators else harvest_function(c, "exits" in plan.estimators, members)
+        kernels = cls(step=step_function(plan.params, plan.n_steps, plan.connect, c), harvest=harvest, connect=connection_function(c))
         if wrap is None:
             return kernels
         return cls(**{f.name: wrap(f.name, getattr(kernels, f.name)) for f in fields(cls)})
@@ -83,6 +81,8 @@ class _Runner:
         self.plan, self.progress = plan, progress
         self.kernels = _Kernels.for_plan(plan, bool(members), wrap_kernels)
         self.harvest_fields = harvest_fields("exits" in plan.estimators, bool(members))
+        # The hybrid's harvest also makes its entries (workers.walk.hybrid.harvest_with_entries).
+        self.entry_args = (plan.first_vertex, plan.entry_layout) if "hybrid" in plan.estimators else ()
         self.count = _Counters()
         batch_estimators = [e for e in plan.estimators if e in BATCH_ESTIMATORS]
         photon_estimators = [e for e in plan.estimators if e not in BATCH_ESTIMATORS]
@@ -110,12 +110,13 @@ class _Runner:
         self.tail_chunks: list[int] = []  # the tail chunks stepped, in order
 
     # -- lanes --------------------------------------------------------------------------------
-    def finish_and_refill(self, idx: torch.Tensor) -> tuple[int, int]:
-        """Record the finished photons of lanes idx (ascending lanes not running; the hybrid's
-        entries must be tallied already) and launch the next photons into those lanes, in lane
-        order: :func:`workers.walk.harvest.harvest_block` over up to HARVEST_BLOCK lanes at a time,
-        so the work is per lane harvested, not per lane of the array.  The exit tally's entries
-        come from the same pass.  Returns (photons finished, photons launched)."""
+    def finish_and_refill(self, idx: torch.Tensor, finished: bool = True) -> tuple[int, int]:
+        """Record the finished photons of lanes idx (ascending lanes not running) and launch the
+        next photons into those lanes, in lane order: :func:`workers.walk.harvest.harvest_block`
+        over up to HARVEST_BLOCK lanes at a time, so the work is per lane harvested, not per lane
+        of the array.  The exit tally's entries come from the same pass, and so do the hybrid's,
+        which are tallied if `finished` (every lane of idx holds a finished photon: harvest()) and
+        not at the first fill (every lane EMPTY).  Returns (photons finished, photons launched)."""
         plan, L = self.plan, self.lanes
         launched = min(len(idx), plan.n_launch - self.next_launch)
         outs = []
@@ -129,7 +130,11 @@ class _Runner:
                 block = torch.cat((block, torch.full((pad,), plan.n_lanes, dtype=torch.int64)))
             self.launch[1] = self.next_launch + a  # written in place: building two small tensors a block cost ~1 % of a short walk
             self.n_valid.fill_(m)
-            out = self.kernels.harvest(block, self.n_valid, L, plan.table, self.launch, plan.exit_bins)
+            out = self.kernels.harvest(block, self.n_valid, L, plan.table, self.launch, plan.exit_bins, *self.entry_args)
+            if self.entry_args:
+                entries, out = out[:ENTRY_OUTPUTS], out[ENTRY_OUTPUTS:]
+                if finished:
+                    self.tally_entries(entries, out[names.index("nscat")] if self.members is not None else None, m)
             self.count.photon_steps += int(out[at_steps])
             outs.append([v[:m].numpy() for i, v in enumerate(out) if i != at_steps])
         self.next_launch += launched
@@ -156,7 +161,7 @@ class _Runner:
 
     def fill(self) -> int:
         """Launch the first photons into every lane (all EMPTY); returns how many were launched."""
-        return self.finish_and_refill(torch.arange(self.plan.n_lanes))[1]
+        return self.finish_and_refill(torch.arange(self.plan.n_lanes), finished=False)[1]
 
     def tail_target(self, running: int) -> int | None:
         """The tail chunk the running lanes should move to (nothing left to launch and they fit),
@@ -205,12 +210,12 @@ class _Runner:
         """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
         st = self.lanes.status[: self.active * self.chunk].numpy()  # numpy's flatnonzero: ~2.5x faster than torch.nonzero here
         launching = self.next_launch < self.plan.n_launch
-        done = (st != RUNNING) & (st != EMPTY) if "hybrid" in self.plan.estimators or not launching else None
-        if "hybrid" in self.plan.estimators:
-            self.tally_hybrid(torch.from_numpy(np.flatnonzero(done)))
-        # While photons are left to launch every lane not running is refilled (there are no EMPTY
-        # lanes then but at the start); afterwards only the finished ones are recorded.
-        free = st != RUNNING if launching else done
+        # While photons are left to launch every lane not running is refilled; afterwards only the
+        # finished ones are recorded.  Either way every lane harvested here holds a finished
+        # photon: lanes become EMPTY only once nothing is left to launch (the refill's launches
+        # run out, or a fill with fewer photons than lanes), so while launching there are none
+        # but at the first fill, which fill() harvests (the hybrid's entries rely on it).
+        free = st != RUNNING if launching else (st != RUNNING) & (st != EMPTY)
         finished, launched = self.finish_and_refill(torch.from_numpy(np.flatnonzero(free)))
         if self.acc.ready:
             self.flush_vertices(force=True)  # a batch folds only after all its vertices are tallied
@@ -222,34 +227,22 @@ class _Runner:
         return running
 
     # -- exit estimator and hybrid ------------------------------------------------------------
-    def _blocks(self, idx: torch.Tensor, fn, axis: tuple[int, ...] | None = None):
-        """fn(block) over up to ENTRIES_CALL lanes of idx per call (in lane order), yielded as
-        numpy arrays EXIT_BLOCK photons at a time: the unit in which the tallies add, which fixes
-        the association of their float sums (so the call's length changes no bit).  The
-        compiled kernel takes any multiple of the vector width: a call is padded with its first
-        lane, and the padding cut (along the lane axis of each output: `axis`, default 0)."""
-        for a in range(0, len(idx), ENTRIES_CALL):
-            block = idx[a : a + ENTRIES_CALL]
-            m = len(block)
-            pad = -m % LANE_MULTIPLE if self.plan.compiled else 0
-            if pad:
-                block = torch.cat((block, block[:1].expand(pad)))
-            out = [v.numpy() for v in fn(block)]
-            axes = axis or (0,) * len(out)
-            for b in range(0, m, EXIT_BLOCK):
-                e = min(b + EXIT_BLOCK, m)
-                yield [v[b:e] if ax == 0 else v[:, b:e] for v, ax in zip(out, axes)]
-
-    def tally_hybrid(self, idx: torch.Tensor) -> None:
-        """The hybrid estimator's entries of the photons finished in lanes idx: the first-vertex
-        connection samples (single) and the exit after two or more scatterings (multiple)."""
-        plan, members = self.plan, self.members is not None
-        entries = lambda b: self.kernels.entries(b, self.lanes, plan.exit_bins, plan.first_vertex, plan.entry_layout)  # noqa: E731
-        fn = (lambda b: (*entries(b), self.lanes.nscat[b])) if members else entries  # the members reweight by the scattering count
-        for flat2, g, s, key, weight, *nscat in self._blocks(idx, fn, axis=(0, 0, 0, 1, 1, 0)):
-            self.photons.add_photons("hybrid", flat2, g, s, key, weight)
-            if members:
-                self.members.add_hybrid(flat2, g, s, entry_square_keys(flat2, self.photons.layout), nscat[0])
+    def tally_entries(self, entries, nscat: torch.Tensor | None, m: int) -> None:
+        """Tally the hybrid estimator's entries of the first m photons of one harvest call (the
+        first-vertex connection samples, single, and the exit after two or more scatterings,
+        multiple; workers.walk.hybrid.photon_entries), EXIT_BLOCK photons at a time: the unit in
+        which the tallies add, which fixes the association of their float sums.  A harvest's
+        calls start on multiples of HARVEST_BLOCK, a multiple of EXIT_BLOCK, so the blocks are
+        those of the harvest's photons in lane order whatever the call's length.  nscat: the
+        photons' scattering counts, by which the members reweight."""
+        flat2, g, s, key, weight = (v.numpy() for v in entries)
+        nscat = nscat.numpy() if nscat is not None else None
+        for b in range(0, m, EXIT_BLOCK):
+            e = min(b + EXIT_BLOCK, m)
+            f = flat2[b:e]
+            self.photons.add_photons("hybrid", f, g[b:e], s[b:e], key[:, b:e], weight[:, b:e])
+            if nscat is not None:
+                self.members.add_hybrid(f, g[b:e], s[b:e], entry_square_keys(f, self.photons.layout), nscat[b:e])
 
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
@@ -356,7 +349,7 @@ def run_shard(spec: SimulationSpec, shard_index: int, *, progress: Callable[[int
     or when the shard runs; `info` carries timings and counters that do.
 
     wrap_kernels(name, kernel), if given, returns what the run calls instead of each kernel
-    ("step", "harvest", "entries", "connect"): a profiler's timers (workers.measure.profile).
+    ("step", "harvest", "connect"): a profiler's timers (workers.measure.profile).
     """
     init_engine()
     return _Runner(ShardPlan.build(spec, shard_index), progress, tuple(members), wrap_kernels).run()

@@ -44,7 +44,7 @@ import torch
 
 from .binning import TWO_PI, direction_index, exact_divmod, histogram_index, sector_index
 from .conventions import PURPOSE_CONNECT
-from .harvest import ExitBins, exit_cells, spread_bins, spread_mask
+from .harvest import ExitBins, exit_cells, harvest_block, spread_bins, spread_mask
 from .kernels import compile_kernel
 from .optics import fresnel_transmittance, refracted_cos, sample_exponential, scatter_direction, transmittance_cos_ratio
 from .phase import DEFAULT_PHASE, phase_function
@@ -52,7 +52,7 @@ from .rng import philox4x32, photon_words, stream_draws, uniform_halfopen, unifo
 from .search import EdgeIndex, indexed_count_le
 from .walk import EXITED, Lanes, walk_stream_start
 
-__all__ = ["K_SAMPLES", "FirstVertexGeometry", "EntryLayout", "strata", "first_vertex_samples", "photon_entries", "entries_function"]
+__all__ = ["K_SAMPLES", "FirstVertexGeometry", "EntryLayout", "strata", "first_vertex_samples", "photon_entries", "ENTRY_OUTPUTS", "harvest_with_entries", "harvest_entries_function"]
 
 K_SAMPLES = 2
 """Stratified uniform samples per photon (fewer if there are fewer spatial bins)."""
@@ -289,8 +289,31 @@ def photon_entries(idx: torch.Tensor, lanes: Lanes, bins: ExitBins, geo: FirstVe
     return (torch.stack(flat2).T, torch.stack(g).T, torch.stack(s).T, torch.stack(keys), torch.stack(weights))
 
 
+ENTRY_OUTPUTS = 5
+"""The arrays :func:`photon_entries` returns, first among :func:`harvest_with_entries`'s outputs."""
+
+
+def harvest_with_entries(idx, n_valid, lanes: Lanes, table, launch, bins: ExitBins, geo: FirstVertexGeometry, lay: EntryLayout,
+                         members: bool = False):
+    """The hybrid's harvest in one pass over lanes idx: :func:`photon_entries` of their photons,
+    read before the refill, then :func:`workers.walk.harvest.harvest_block` without the exit
+    tally's lookup (the entries carry the exit).  Returns the entries' ENTRY_OUTPUTS arrays, then
+    the records of ``harvest_fields(False, members)``.
+
+    One pass gathers the lanes' fields once where the entries and the harvest each gathered
+    them, and makes one call instead of two.  Its caller tallies the entries only where every
+    lane of idx holds a finished photon, which outside the shard's first fill is every harvest
+    (workers.run.shard); the entries of padding lanes are cut off."""
+    entries = photon_entries(idx, lanes, bins, geo, lay)
+    return (*entries, *harvest_block(idx, n_valid, lanes, table, launch, bins, exits=False, members=members))
+
+
 @lru_cache(maxsize=None)
-def entries_function(compiled: bool):
-    """:func:`photon_entries` compiled for any number of photons (a multiple of the vector width:
+def harvest_entries_function(compiled: bool, members: bool = True):
+    """:func:`harvest_with_entries` compiled for any block length (a multiple of the vector width:
     the caller pads) or eager."""
-    return compile_kernel(photon_entries, "hybrid_entries", any_length=True) if compiled else photon_entries
+
+    def fn(idx, n_valid, lanes, table, launch, bins, geo, lay):
+        return harvest_with_entries(idx, n_valid, lanes, table, launch, bins, geo, lay, members)
+
+    return compile_kernel(fn, "harvest_entries", (members,), any_length=True) if compiled else fn
