@@ -46,8 +46,9 @@ class _Kernels:
     """The (compiled or eager) functions a shard run calls, chosen once from its plan."""
 
     step: Callable  # steps a chunk of lanes in place (workers.walk.walk.step_function)
-    harvest: Callable  # records lanes not running and refills them (workers.walk.harvest.harvest_block): harvest_fields(exits, members),
-    # after the hybrid's entries per photon for the hybrid (workers.walk.hybrid.harvest_with_entries)
+    # records lanes not running and refills them (workers.walk.harvest.harvest_block): harvest_fields(exits, members);
+    # the hybrid's returns its entries per photon first (workers.walk.hybrid.harvest_with_entries)
+    harvest: Callable
     connect: Callable  # both connection techniques for a chunk of vertices
 
     @classmethod
