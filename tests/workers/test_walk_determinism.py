@@ -278,28 +278,36 @@ def test_a_long_tail_stepped_in_the_deep_tail_chunks_tallies_the_same_photons(wa
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-300, err_msg=name)
 
 
-def test_the_length_of_a_kernel_call_changes_no_bit(walk_spec, monkeypatch):
-    """The harvest (with the hybrid's entries) runs on up to HARVEST_BLOCK lanes per call, any
-    multiple of the vector width (workers.run.shard).  The hybrid's entries are added to the
-    tallies EXIT_BLOCK photons at a time whatever the call's length, which fixes the association
-    of the float sums, and the harvest's records are summed over the whole harvest: so shorter or
-    longer calls give the same bytes, members included (eager engine: the same slicing code as
-    the compiled one, no compile)."""
+def test_the_padding_of_a_harvest_call_changes_no_bit(walk_spec, monkeypatch):
+    """A harvest is one kernel call over its lanes, padded to a multiple of LANE_MULTIPLE with
+    the scratch lane (workers.run.shard).  The hybrid's entries are tallied per harvest with the
+    padding's entries set to weight 0, and the per-lane records are cut to the real lanes: so any
+    padding gives the same bytes, members included (eager engine: the same code as the compiled
+    path, no compile).  It fails if padded entries reach a sum or an event count."""
     import workers.run.shard as shard
 
     monkeypatch.setenv("BSSRDF_COMPILE", "0")
     spec = walk_spec(sigma_a=0.1, sigma_s=0.9, eta=1.0, photons=6000, estimator="hybrid", seed=5, shards=1, batches_per_shard=4)
-    monkeypatch.setattr(shard, "EXIT_BLOCK", 256)  # several additions per call, and a short last one
-    digests = []
-    for harvest_block in (256, 3 * 256, 1 << 14):
-        monkeypatch.setattr(shard, "HARVEST_BLOCK", harvest_block)
+    digests, padded = [], []
+    harvest = shard._Runner.finish_and_refill
+
+    def counting(self, idx, finished=True):
+        padded.append(-len(idx) % shard.LANE_MULTIPLE)
+        return harvest(self, idx, finished)
+
+    monkeypatch.setattr(shard._Runner, "finish_and_refill", counting)
+    for multiple in (1, 16, 512):
+        monkeypatch.setattr(shard, "LANE_MULTIPLE", multiple)
+        padded.clear()
         digests.append(tally_digest(run_shard(spec, 0, members=(0.7,))))
+        assert multiple == 1 or sum(p > 0 for p in padded) >= 3, "the harvests must have been padded"
     assert digests[0] == digests[1] == digests[2]
 
 
-def test_a_kernel_call_holds_whole_tally_blocks():
-    """Bits do not depend on the call's length only if every call but the last ends on a tally
-    block (test above), and every length a compiled call may have is a multiple of the vector width."""
+def test_every_compiled_length_is_a_multiple_of_the_vector_width():
+    """Every length a compiled any-length kernel is called with is a multiple of the vector
+    width (lanes past the last multiple could round differently: workers.walk.kernels)."""
     from workers.run import plan
 
-    assert plan.HARVEST_BLOCK % plan.EXIT_BLOCK == 0 and plan.EXIT_BLOCK % plan.LANE_MULTIPLE == 0 and plan.LANE_MULTIPLE == 16
+    assert plan.LANE_MULTIPLE == 16 and plan.CHUNK % plan.LANE_MULTIPLE == 0
+    assert all(plan.CHUNK // d % plan.LANE_MULTIPLE == 0 for d in (plan.TAIL_DIVISOR, *plan.DEEP_TAIL_DIVISORS))

@@ -26,7 +26,7 @@ from workers.walk.phase import phase_of
 from workers.walk.rng import stream_key, to_i32
 from workers.walk.walk import ConfigTable, WalkParams, compile_enabled
 
-__all__ = ["ShardPlan", "config_table", "chunk_count", "CHUNK", "VERTEX_CHUNK", "EXIT_BLOCK", "HARVEST_BLOCK", "LANE_MULTIPLE", "HARVEST_DIVISOR"]
+__all__ = ["ShardPlan", "config_table", "chunk_count", "CHUNK", "VERTEX_CHUNK", "LANE_MULTIPLE", "HARVEST_DIVISOR"]
 
 CHUNK = 1 << 14  # lanes per call of the compiled step (the tail's chunks are shorter: one kernel serves every length); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
@@ -39,8 +39,6 @@ PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the t
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
 EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
 LANE_MULTIPLE = 16  # every length a compiled any-length kernel is called with is a multiple of this (the vector width)
-EXIT_BLOCK = 1 << 12  # finished photons per addition of the hybrid's entries to the tallies (the association of its float sums)
-HARVEST_BLOCK = 1 << 14  # lanes per call of the compiled harvest (record + refill, the hybrid's entries; at most, any multiple of LANE_MULTIPLE; a multiple of EXIT_BLOCK); a harvest of M2 has ~18000
 HARVEST_DIVISOR = 8  # harvest once 1/HARVEST_DIVISOR of the lanes has finished (4 and 32 ran M1 slower here)
 
 

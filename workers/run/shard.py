@@ -26,7 +26,7 @@ from workers.walk.harvest import harvest_fields, harvest_function
 from workers.walk.hybrid import ENTRY_OUTPUTS, harvest_entries_function
 from workers.walk.path_roulette import check_steps_per_call
 from workers.fold.reweight import MemberTallies, member_prefix
-from .plan import DEEP_TAIL_AFTER, EXIT_BLOCK, HARVEST_BLOCK, HARVEST_DIVISOR, LANE_MULTIPLE, VERTEX_CHUNK, ShardPlan
+from .plan import DEEP_TAIL_AFTER, HARVEST_DIVISOR, LANE_MULTIPLE, VERTEX_CHUNK, ShardPlan
 from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally, entry_square_keys
 from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
@@ -113,41 +113,44 @@ class _Runner:
     # -- lanes --------------------------------------------------------------------------------
     def finish_and_refill(self, idx: torch.Tensor, finished: bool = True) -> tuple[int, int]:
         """Record the finished photons of lanes idx (ascending lanes not running) and launch the
-        next photons into those lanes, in lane order: :func:`workers.walk.harvest.harvest_block`
-        over up to HARVEST_BLOCK lanes at a time, so the work is per lane harvested, not per lane
-        of the array.  The exit tally's entries come from the same pass, and so do the hybrid's,
-        which are tallied if `finished` (every lane of idx holds a finished photon: harvest()) and
-        not at the first fill (every lane EMPTY).  Returns (photons finished, photons launched)."""
+        next photons into those lanes, in lane order: one call of
+        :func:`workers.walk.harvest.harvest_block` over them all (at most every lane), so the work
+        is per lane harvested, not per lane of the array.  The exit tally's entries come from the
+        same pass, and so do the hybrid's, which are tallied if `finished` (every lane of idx holds
+        a finished photon: harvest()) and not at the first fill (every lane EMPTY).
+
+        The call's length is padded to a multiple of LANE_MULTIPLE with the scratch lane (also
+        on the eager path: one code path, whose bits the tests compare across paddings).  Its
+        records are tallied as the kernel returns them, without copies: per-lane records cut
+        to the real lanes (views), the hybrid's entries whole, their padding set to weight 0
+        (tally_entries).  Returns (photons finished, photons launched)."""
         plan, L = self.plan, self.lanes
         launched = min(len(idx), plan.n_launch - self.next_launch)
-        outs = []
-        names = self.harvest_fields
-        at_steps = names.index("steps")
-        for a in range(0, len(idx), HARVEST_BLOCK):
-            block = idx[a : a + HARVEST_BLOCK]
-            m = len(block)
-            pad = -m % LANE_MULTIPLE if plan.compiled else 0
-            if pad:  # the kernel takes any multiple of the vector width: pad with the scratch lane
-                block = torch.cat((block, torch.full((pad,), plan.n_lanes, dtype=torch.int64)))
-            self.launch[1] = self.next_launch + a  # written in place: building two small tensors a block cost ~1 % of a short walk
-            self.n_valid.fill_(m)
-            out = self.kernels.harvest(block, self.n_valid, L, plan.table, self.launch, plan.exit_bins, *self.entry_args)
-            if self.entry_args:
-                entries, out = out[:ENTRY_OUTPUTS], out[ENTRY_OUTPUTS:]
-                if finished:
-                    self.tally_entries(entries, out[names.index("nscat")] if self.members is not None else None, m)
-            self.count.photon_steps += int(out[at_steps])
-            outs.append([v[:m].numpy() for i, v in enumerate(out) if i != at_steps])
         self.next_launch += launched
-        if not outs:
+        m = len(idx)
+        if m == 0:
             return 0, launched
-        rec = dict(zip((n for n in names if n != "steps"), (np.concatenate(v) for v in zip(*outs))))
+        names = self.harvest_fields
+        pad = -m % LANE_MULTIPLE
+        if pad:  # the kernel takes any multiple of the vector width: pad with the scratch lane
+            idx = torch.cat((idx, torch.full((pad,), plan.n_lanes, dtype=torch.int64)))
+        self.launch[1] = self.next_launch - launched  # written in place: building small tensors per call cost ~1 % of a short walk
+        self.n_valid.fill_(m)
+        out = self.kernels.harvest(idx, self.n_valid, L, plan.table, self.launch, plan.exit_bins, *self.entry_args)
+        if self.entry_args:
+            entries, out = out[:ENTRY_OUTPUTS], out[ENTRY_OUTPUTS:]
+            if finished:
+                self.tally_entries(entries, out[names.index("nscat")] if self.members is not None else None, m)
+        rec = {name: v[:m].numpy() for name, v in zip(names, out) if name != "steps"}
+        self.count.photon_steps += int(out[names.index("steps")])
         # Lanes that hold no finished photon (or no exit) have records of weight 0 (the spare key,
         # whose configuration is 0; flat spread over bins): added to a sum they leave it as it is, bit for bit,
         # and they are no events (those count nonzero weights), so the tallies take every record
         # without selecting them first; the members select, to reweight.
         key = rec["key"]
-        cfg = key % plan.cfgs.n
+        # One configuration (every bench medium, every walk of a sweep's group): all 0, without
+        # dividing int64 record by record (~4 ns a photon of M2's exit walk).
+        cfg = key % plan.cfgs.n if plan.cfgs.n > 1 else np.zeros_like(key)
         self.photons.add_walk(cfg, rec["absorbed"], rec["truncated"])
         if "exits" in plan.estimators:
             self.photons.add_exits("exits", rec["flat"], rec["g"], rec["s"])
@@ -229,21 +232,25 @@ class _Runner:
 
     # -- exit estimator and hybrid ------------------------------------------------------------
     def tally_entries(self, entries, nscat: torch.Tensor | None, m: int) -> None:
-        """Tally the hybrid estimator's entries of the first m photons of one harvest call (the
-        first-vertex connection samples, single, and the exit after two or more scatterings,
-        multiple; workers.walk.hybrid.photon_entries), EXIT_BLOCK photons at a time: the unit in
-        which the tallies add, which fixes the association of their float sums.  A harvest's
-        calls start on multiples of HARVEST_BLOCK, a multiple of EXIT_BLOCK, so the blocks are
-        those of the harvest's photons in lane order whatever the call's length.  nscat: the
-        photons' scattering counts, by which the members reweight."""
+        """Tally the hybrid estimator's entries of one harvest (the first-vertex connection
+        samples, single, and the exit after two or more scatterings, multiple;
+        workers.walk.hybrid.photon_entries), the first m positions real, the rest padding.  A
+        harvest is the unit in which the tallies add (one bincount per quantity over its entries
+        in memory order), which fixes the association of their float sums: the harvests are fixed
+        by the spec, so are the bits.  The padding's entries are set to weight 0 at in-range keys
+        in place (the kernel's fresh outputs): they leave every sum as it is and are no events,
+        and the arrays stay whole, which the bincounts read without a copy (cutting them to m
+        rows copied every entry-major array: BENCHMARKS.md).  nscat: the photons' scattering
+        counts, by which the members reweight (they take the m real photons: their group sums are
+        pairwise, whose association more terms would change, and they copy their inputs anyway)."""
         flat2, g, s, key, weight = (v.numpy() for v in entries)
-        nscat = nscat.numpy() if nscat is not None else None
-        for b in range(0, m, EXIT_BLOCK):
-            e = min(b + EXIT_BLOCK, m)
-            f = flat2[b:e]
-            self.photons.add_photons("hybrid", f, g[b:e], s[b:e], key[:, b:e], weight[:, b:e])
-            if nscat is not None:
-                self.members.add_hybrid(f, g[b:e], s[b:e], entry_square_keys(f, self.photons.layout), nscat[b:e])
+        if nscat is not None:  # cut to the real photons: the members copy their inputs anyway, and sum groups pairwise
+            f = flat2[:m]
+            self.members.add_hybrid(f, g[:m], s[:m], entry_square_keys(f, self.photons.layout), nscat[:m].numpy())
+        if m < len(flat2):
+            g[m:], s[m:], weight[:, m:] = 0.0, 0.0, 0.0
+            flat2[m:], key[:, m:] = flat2[:1], key[:, :1]  # the first photon's keys: in range
+        self.photons.add_photons("hybrid", flat2, g, s, key, weight)
 
     def flat_index(self, cfg, comp, spatial, direction) -> torch.Tensor:
         """Index into the flattened [cfg, comp, n_r + 1, n_theta, n_cos, n_phi] histogram."""
