@@ -140,23 +140,31 @@ class MemberTallies:
         """
         if len(nscat) == 0:
             return
-        flat2, g, s, key = (np.ascontiguousarray(a) for a in (flat2, g, s, key))  # the kernel's are entry-major views
-        value = np.stack([g, s, g, g, g, s, g, g])  # [8, P, E]
-        e = value.shape[-1]
-        single, ex = value[..., :-1], value[..., -1]
-        same_ex = key[..., :-1] == key[..., -1:]  # a first-vertex entry sharing its key with the exit
-        cross_ss = np.zeros_like(single)
-        for j in range(e - 2):
-            same = key[..., j + 1 : -1] == key[..., j : j + 1]
-            cross_ss[..., j] = np.sum(np.where(same, single[..., j + 1 :], 0.0), axis=-1)
-        q_ss = (single * (single + 2.0 * cross_ss)).reshape(-1)
-        q_se = (np.sum(np.where(same_ex, single, 0.0), axis=-1) * ex).reshape(-1)  # sum_j x_j x_exit over shared keys
+        # Entry-major: [E, P] and [8, E, P], each entry a contiguous row (the kernel's arrays are
+        # entry-major: no copy), so that every operation below runs over a photon row (numpy on a
+        # short last axis of E cost ~1 us a photon, five times the walk of a low albedo).
+        fT, gT, sT = (np.ascontiguousarray(a.T) for a in (flat2, g, s))
+        keyT = np.ascontiguousarray(np.moveaxis(key, 2, 1))
+        e, n_p = gT.shape
+        q_ss, q_se = np.empty((8, e - 1, n_p)), np.empty((8, n_p))
+        for k, v in enumerate((gT, sT, gT, gT, gT, sT, gT, gT)):  # the values of the 8 key sets
+            kk = keyT[k]
+            for j in range(e - 1):  # x_j (x_j + 2 sum_{i > j} x_i [same key]): the photon's square at x_j's key, once per pair
+                cross = 0.0
+                for i in range(j + 1, e - 1):
+                    cross = cross + np.where(kk[i] == kk[j], v[i], 0.0)
+                q_ss[k, j] = v[j] * (v[j] + 2.0 * cross)
+            shared = 0.0  # sum_j x_j x_exit over the first-vertex samples sharing the exit's key
+            for j in range(e - 1):
+                shared = shared + np.where(kk[j] == kk[e - 1], v[j], 0.0)
+            q_se[k] = shared * v[e - 1]
         r = self.ratios[:, None]
-        flat_single, flat_ex = flat2[:, :-1].reshape(-1), flat2[:, -1]
-        g_single, s_single = g[:, :-1].reshape(-1), s[:, :-1].reshape(-1)
+        flat_single, flat_ex = fT[:-1].T.reshape(-1), fT[-1]  # first-vertex samples photon-major
+        g_single, s_single = gT[:-1].T.reshape(-1), sT[:-1].T.reshape(-1)
         size = self.accs[0].linear["hybrid"].shape[1]
         n_sq = int(self.accs[0].layout.square_offsets[-1])
-        key_s, key_e = key[..., :-1].reshape(-1), key[..., -1]  # key_e [8, P]: the exit's keys
+        key_s, key_e = keyT[:, :-1].transpose(0, 2, 1).reshape(-1), keyT[:, -1]  # key_e [8, P]: the exit's keys
+        q_ss = q_ss.transpose(0, 2, 1).reshape(-1)  # as key_s: set, photon, sample
         # Every member scales the first-vertex entries by the same r_j: their sums per bin (and
         # their squares per key) are the leader's, times r_j (r_j^2), formed once per block;
         # only the exit's factor r_j^n differs per photon.  A member's events are the leader's
@@ -170,12 +178,12 @@ class MemberTallies:
         grp = _Groups(np.concatenate((flat_ex[None, :], key_e)), max(size, n_sq))
         o = grp.order
         f = member_factors(self.ratios, nscat[o])  # [J, P], photons in group order
-        ge, se = g[o, -1][None, :] * f, s[o, -1][None, :] * f
+        ge, se = gT[-1, o][None, :] * f, sT[-1, o][None, :] * f
         at = self._offsets(grp.labels[0], size)
         exits = [self._sums(at, grp.sums(w), size) for w in (ge, se, (ge != 0.0).astype(np.float64))]
         for row, lead, scale, ex_j in ((0, single[0], r, exits[0]), (2, single[1], r, exits[1]), (4, single[2], live, exits[2])):
             self.linear["hybrid"][:, row] += scale * lead[None, :] + ex_j
-        exit_sq = self._exit_squares(grp, ge, se, f, q_se.reshape(key_e.shape)[:, o], n_sq)
+        exit_sq = self._exit_squares(grp, ge, se, f, q_se[:, o], n_sq)
         if "hybrid" not in self.squares:
             self.squares["hybrid"] = self._rows("squares", "hybrid", (n_sq,))
         self.squares["hybrid"] += (r * r) * sq_single[None, :] + exit_sq
@@ -248,10 +256,13 @@ class _Groups:
                 _, group = np.unique(group, return_inverse=True)
                 group, n_group = group.reshape(-1), int(group.max()) + 1
             group, n_group = group * bound + row, n_group * bound
-        group = np.unique(group, return_inverse=True)[1].reshape(-1)
+        # One stable sort: the order of the numbers is the order of their ranks (np.unique's
+        # inverse, sorted again, cost a second sort), and the ranks in that order count the runs.
         self.order = np.argsort(group, kind="stable")
-        self.group_of = group[self.order]
-        self.starts = np.flatnonzero(np.concatenate(([True], self.group_of[1:] != self.group_of[:-1])))
+        ordered = group[self.order]
+        first = np.concatenate(([True], ordered[1:] != ordered[:-1]))
+        self.starts = np.flatnonzero(first)
+        self.group_of = np.cumsum(first) - 1
         self.labels = labels[:, self.order[self.starts]]
 
     def sums(self, w: np.ndarray) -> np.ndarray:

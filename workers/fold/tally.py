@@ -126,13 +126,16 @@ def entry_square_keys(flat2: np.ndarray, layout: TallyLayout) -> np.ndarray:
     then for the total (component 2): the keys whose per-photon sums of G, S, G, G, G, S, G, G are
     squared (workers.fold.reweight's members square their reweighted entries with them)."""
     o_bins_g, o_bins_s, o_radial, o_rd = (int(o) for o in layout.square_offsets[:4])
-    direction, rest = flat2 % layout.n_dir, flat2 // layout.n_dir
-    spatial, rest = rest % layout.n_sp, rest // layout.n_sp
-    comp, cfg = rest % 2, rest // 2
+    # Three integer divisions, not six (~1 ns an element each): flat2 = (cfg * 2 + comp) * n_cell + cell
+    # with cell = spatial * n_dir + direction, and the ring is cell // (n_theta * n_dir).
+    n_cell = layout.n_sp * layout.n_dir
+    level, cell = np.divmod(flat2, n_cell)
+    cfg3 = (level >> 1) * 3  # level = cfg * 2 + comp
+    ring = cell // (layout.n_theta * layout.n_dir)
     keys = []
-    for c3 in (comp, np.full_like(comp, 2)):
-        bins = ((cfg * 3 + c3) * layout.n_sp + spatial) * layout.n_dir + direction
-        keys += [bins + o_bins_g, bins + o_bins_s, (cfg * 3 + c3) * layout.n_r1 + spatial // layout.n_theta + o_radial, cfg * 3 + c3 + o_rd]
+    for c3 in (cfg3 + (level & 1), cfg3 + 2):  # the entry's component, then the total
+        bins = c3 * n_cell + cell
+        keys += [bins + o_bins_g, bins + o_bins_s, c3 * layout.n_r1 + ring + o_radial, c3 + o_rd]
     return np.stack(keys)
 
 
