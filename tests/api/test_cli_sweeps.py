@@ -47,6 +47,43 @@ def test_simulate_json_rows_carry_the_medium(tmp_path, capsys):
     assert per_medium[0] == per_medium[1] > 0, per_medium
 
 
+def test_simulate_prints_a_sweeps_target_per_medium(tmp_path, capsys):
+    """A sweep run to a target error records one status per medium; the printed summary says in
+    how many media the target was reached and which medium's worst check came nearest its limit
+    (the printout once took the sweep's list of statuses for one medium's and crashed after the
+    tables were written)."""
+    spec_path = tmp_path / "sweep.json"
+    spec_path.write_text(json.dumps(dict(SWEEP, photons=4000, target={"rel_stderr": 0.5})))
+    capsys.readouterr()
+    assert bssrdf(["simulate", str(spec_path), "--out", str(tmp_path / "out"), "--workers", "1", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    statuses = summary["target"]
+    assert len(statuses) == 2 and all(t["reached"] for t in statuses), statuses
+    line = next(line for line in out.splitlines() if line.startswith("target"))
+    checks = sum(t["checks"] for t in statuses)
+    assert "target reached in 2 of 2 media" in line and f"({checks} of {checks} checks met)" in line, out
+    assert "worst: medium " in line and "limit 0.5" in line, line
+
+
+def test_a_sweeps_target_lines_name_the_worst_medium_and_the_media_that_missed():
+    from workers.run.simulate import target_lines
+
+    def status(reached, rel, photons, limit=0.01):
+        worst = {"r_lo_mm": 0.1, "r_hi_mm": 0.2, "rel_stderr": rel, "limit": limit, "estimator": "hybrid", "channel": "c0",
+                 "incidence_deg": 0.0, "dof": photons - 1}
+        return {"reached": reached, "photons": photons, "met": 3 if reached else 2, "checks": 3, "worst": worst}
+
+    rows = [{"medium": m, "albedo": a, "g": 0.0, "eta": 1.33} for m, a in enumerate((0.2, 0.5, 0.9, 0.99))]
+    lines = target_lines([status(True, 0.009, 1000), status(False, 0.03, 4000), None, status(True, None, 2000)], rows)
+    assert lines[0].startswith("target reached in 2 of 4 media with 1000-4000 photons") and "(8 of 9 checks met)" in lines[0]
+    assert "worst: medium 3 (albedo 0.99" in lines[0] and "relative error no estimate" in lines[0]  # no estimate is the worst
+    assert lines[1] == "target NOT reached in media 1, 2"
+    one = target_lines(status(True, 0.009, 1000), rows)
+    assert one == ["target reached with 1000 photons per angle and channel (3 of 3 checks met; worst: Rd(r) in [0.1, 0.2) mm, "
+                   "hybrid, c0, theta_i 0: relative error 0.009 on 999 dof, limit 0.01)"]
+
+
 def test_run_then_status_shows_every_medium(tmp_path, cli, capsys):
     data_dir = tmp_path / "d"
     spec_path = tmp_path / "sweep.json"

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import sys
 import time
@@ -173,8 +174,8 @@ def format_summary(doc: dict, max_rows: int = 60) -> str:
     sweep = "media" in doc["run"]
     photons = doc["run"]["photons_per_config"]
     per = "photons per angle and channel" + (" of each medium" if sweep else "")
-    if sweep and len(set(photons)) == 1:
-        photons = photons[0]
+    if sweep:  # one count, or the range (a run to a target stops each medium at its own)
+        photons = photons[0] if len(set(photons)) == 1 else f"{min(photons)}-{max(photons)}"
     lines = [f"{doc['name']}  (spec {doc['spec_hash'][:12]}, {photons} {per}"
              + (f", {doc['run']['media']} media)" if sweep else ")")]
     medium_cols = f"{'medium':>6} {'albedo':>8} {'g':>6} {'eta':>6}  " if sweep else ""
@@ -193,13 +194,48 @@ def format_summary(doc: dict, max_rows: int = 60) -> str:
         lines.append(f"{prefix}{est:<12}{inc:>8.1f} {ch:<4}{total['R_spec']:>9.5f}  {cells[0]:>20}  {cells[1]:>20}  {cells[2]:>20}")
     lines.append("Rd = diffuse reflectance (specular excluded) per unit incident power, +- one standard error.")
     if "target" in doc:
-        t, w = doc["target"], doc["target"]["worst"]
-        what = "Rd" if w["r_lo_mm"] is None else f"Rd(r) in [{w['r_lo_mm']:.4g}, {w['r_hi_mm']:.4g}) mm"
-        rel = "no estimate" if w["rel_stderr"] is None else f"{w['rel_stderr']:.3g}"
-        lines.append(f"target {'reached' if t['reached'] else 'NOT reached'} with {t['photons']} photons per angle and channel "
-                     f"({t['met']} of {t['checks']} checks met; worst: {what}, {w['estimator']}, {w['channel']}, "
-                     f"theta_i {w['incidence_deg']:g}: relative error {rel} on {w['dof']} dof, limit {w['limit']:g})")  # fmt: skip
+        lines += target_lines(doc["target"], results)
     return "\n".join(lines)
+
+
+def _worst_check(w: dict) -> str:
+    what = "Rd" if w["r_lo_mm"] is None else f"Rd(r) in [{w['r_lo_mm']:.4g}, {w['r_hi_mm']:.4g}) mm"
+    rel = "no estimate" if w["rel_stderr"] is None else f"{w['rel_stderr']:.3g}"
+    return (f"{what}, {w['estimator']}, {w['channel']}, theta_i {w['incidence_deg']:g}: relative error {rel} on {w['dof']} dof, "
+            f"limit {w['limit']:g}")
+
+
+def _severity(t: dict) -> float:
+    """How far a medium's worst check is from its limit (relative error / limit; no estimate: inf)."""
+    w = t["worst"]
+    return math.inf if w["rel_stderr"] is None else w["rel_stderr"] / w["limit"]
+
+
+def target_lines(target: dict | list, results: list[dict], max_listed: int = 10) -> list[str]:
+    """What a run to a target error reached: a single medium's status (a dict), or a sweep's
+    (a list, one status per medium): the media and checks met, the photon counts, the medium
+    whose worst check is nearest its limit (or beyond it) and the media that did not reach it."""
+    if isinstance(target, dict):
+        t = target
+        return [f"target {'reached' if t['reached'] else 'NOT reached'} with {t['photons']} photons per angle and channel "
+                f"({t['met']} of {t['checks']} checks met; worst: {_worst_check(t['worst'])})"]  # fmt: skip
+    judged = [(m, t) for m, t in enumerate(target) if t is not None]
+    if not judged:
+        return ["target: no medium was judged"]
+    reached = [m for m, t in judged if t["reached"]]
+    photons = sorted(t["photons"] for _, t in judged)
+    span = f"{photons[0]}" if photons[0] == photons[-1] else f"{photons[0]}-{photons[-1]}"
+    coords = {r["medium"]: r for r in results if "medium" in r}
+    m, t = max(judged, key=lambda mt: _severity(mt[1]))
+    where = f"medium {m}" + (f" (albedo {coords[m]['albedo']:.5g}, g {coords[m]['g']:.3g}, eta {coords[m]['eta']:.3g})" if m in coords else "")
+    lines = [f"target reached in {len(reached)} of {len(target)} media with {span} photons per angle and channel "
+             f"({sum(t['met'] for _, t in judged)} of {sum(t['checks'] for _, t in judged)} checks met); "
+             f"worst: {where}, {_worst_check(t['worst'])}"]  # fmt: skip
+    missed = [m for m, t in judged if not t["reached"]] + [m for m, t in enumerate(target) if t is None]
+    if missed:
+        shown = ", ".join(map(str, sorted(missed)[:max_listed])) + (f" and {len(missed) - max_listed} more" if len(missed) > max_listed else "")
+        lines.append(f"target NOT reached in media {shown}")
+    return lines
 
 
 class _Progress:
