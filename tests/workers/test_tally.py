@@ -47,8 +47,8 @@ def test_hybrid_kernel_squares_per_photon(walk_spec):
     with torch.no_grad():
         runner.fill()
         for _ in range(6):
-            for k in range(runner.active):
-                runner.kernels.step(runner.chunks[k])
+            for chunk in runner.chunks:
+                runner.kernels.step(chunk)
         st = runner.lanes.status
         idx = torch.nonzero((st != RUNNING) & (st != EMPTY)).squeeze(1)
         assert len(idx) > 50

@@ -204,7 +204,7 @@ torch.set_num_threads(1)
 spec = SimulationSpec.model_validate_json(sys.argv[1])
 t = run_shard(spec, 0)
 print(json.dumps({
-    "engine": t.info["engine"], "tail_lanes": t.info["tail_lanes"], "n_sum": t.n_sum,
+    "engine": t.info["engine"], "tail_lanes": t.info["tail_lanes"], "tail_chunks": t.info["tail_chunks"], "lanes": t.info["lanes"], "n_sum": t.n_sum,
     "counts": {name: t.counts[name].tolist() for name in sorted(t.counts)},
     "stats": {name: [a.tolist() for a in t.stats[name]] for name in ("exits/Rd", "exits/radial_G", "walk/absorbed")},
 }))
@@ -212,18 +212,20 @@ print(json.dumps({
 
 
 @pytest.mark.slow
-def test_compiled_exit_walk_with_its_tail_chunk_agrees_with_eager(walk_stats):
-    """The compiled exit walk (8 steps per call, the shard's last photons in the short tail chunk)
-    against the eager walk on independent photons (another seed): Rd, Rd(r) of every component
-    and the absorbed power agree within error bars.  The medium is the benchmark's M2, whose
-    kernels the benchmark has usually compiled already."""
+def test_compiled_exit_walk_with_its_compacted_tail_agrees_with_eager(walk_stats):
+    """The compiled exit walk (8 steps per call, the shard's last photons compacted to ever fewer
+    lanes) against the eager walk on independent photons (another seed): Rd, Rd(r) of every
+    component and the absorbed power agree within error bars.  The medium is the benchmark's
+    M2, whose kernels the benchmark has usually compiled already."""
     from workers.measure.bench import _spec
+    from workers.run.plan import TAIL_FILL
 
     base = _spec("M2", "exits", 200_000).model_copy(update={"batches_per_shard": 64})
     compiled_spec = base.model_copy(update={"seed": base.seed + 1})
     got = _run_compiled(_COMPILED_EXITS_SCRIPT, compiled_spec)
     assert got["engine"] == "compiled"
-    assert got["tail_lanes"] and 0 < got["tail_lanes"] <= 2048, "the tail chunk must have run"
+    assert got["tail_lanes"] and 0 < got["tail_lanes"] <= TAIL_FILL * got["lanes"], "the tail must have been compacted"
+    assert len(got["tail_chunks"]) >= 3 and all(n % 16 == 0 for n in got["tail_chunks"]), got["tail_chunks"]
     assert got["n_sum"] == 200_000
 
     eager = merge(base, [run_shard(base, 0)])
@@ -245,36 +247,41 @@ def test_every_chunk_length_a_compiled_shard_steps_is_a_multiple_of_the_vector_w
     """One step kernel serves every chunk length (workers.walk.kernels.compile_kernel's
     any_length).  Lanes past the last multiple of the vector width (16 float32 lanes with
     AVX-512) would run in the kernel's scalar loop, whose math functions may round differently,
-    and a photon's result would depend on its lane."""
+    and a photon's result would depend on its lane: the chunks and every length a tail is
+    compacted to are multiples of 16, and a tail's length holds its running photons."""
     from workers.run import plan
+    from workers.run.shard import _tail_length
 
-    lengths = [plan.CHUNK, plan.CONNECT_CHUNK, plan.CHUNK // plan.TAIL_DIVISOR, *(plan.CHUNK // d for d in plan.DEEP_TAIL_DIVISORS)]
-    divisors = (plan.TAIL_DIVISOR, *plan.DEEP_TAIL_DIVISORS)
-    assert all(n % 16 == 0 for n in lengths) and all(plan.CHUNK % d == 0 for d in divisors), (lengths, divisors)
+    assert all(n % 16 == 0 for n in (plan.CHUNK, plan.CONNECT_CHUNK, plan.EAGER_CHUNK, plan.LANE_MULTIPLE))
+    for running in range(0, 5000):
+        n = _tail_length(running)
+        assert n % 16 == 0 and running <= n < running + 16 + (running == 0) * 16, (running, n)
 
 
-def test_a_long_tail_stepped_in_the_deep_tail_chunks_tallies_the_same_photons(walk_spec, monkeypatch):
-    """The last photons of a long tail (albedo 1: a few paths of thousands of steps) move to ever
-    smaller chunks (workers.run.shard: tail_target).  Moving lanes changes no photon's path, only
-    when its results are summed: with and without the deep tail chunks the same photons give the
-    same event counts and the same sums to rounding (eager engine: the same code paths, no
-    compile)."""
-    import workers.run.plan as plan
+def test_a_compacted_tail_tallies_the_same_photons(walk_spec, monkeypatch):
+    """The last photons of a long tail (albedo 1: a few paths of thousands of steps) are moved
+    to the front and stepped alone, the lanes rounded up to 16, each time they fill no more
+    than TAIL_FILL of the stepped lanes (workers.run.shard: compact).  Moving lanes changes no
+    photon's path, only when its results are summed: with and without compaction the same
+    photons give the same event counts and the same sums to rounding (eager engine: the same
+    code paths, no compile)."""
+    import workers.run.shard as shard
 
     monkeypatch.setenv("BSSRDF_COMPILE", "0")
     spec = walk_spec(sigma_a=0.0, sigma_s=1.0, eta=1.33, photons=1000, estimator="hybrid", seed=11, max_scatter=3000,
                      path_roulette={"start": 64, "survival": 0.75})
-    deep = run_shard(spec, 0)
-    monkeypatch.setattr(plan, "DEEP_TAIL_DIVISORS", ())
+    compacted = run_shard(spec, 0)
+    monkeypatch.setattr(shard, "TAIL_FILL", -1.0)  # never
     plain = run_shard(spec, 0)
-    assert len(deep.info["tail_chunks"]) >= 2 and plain.info["tail_chunks"] == deep.info["tail_chunks"][:1], (deep.info, plain.info)
-    assert deep.info["photon_steps"] == plain.info["photon_steps"]
-    assert deep.info["lane_steps"] == plain.info["lane_steps"], "the deep tail must not change how many steps the shard runs"
-    assert deep.counts.keys() == plain.counts.keys() and deep.stats.keys() == plain.stats.keys()
-    for name in deep.counts:
-        np.testing.assert_array_equal(deep.counts[name], plain.counts[name], err_msg=name)
-    for name in deep.stats:
-        for a, b in zip(deep.stats[name], plain.stats[name]):
+    lengths = compacted.info["tail_chunks"]
+    assert len(lengths) >= 3 and lengths == sorted(lengths, reverse=True) and plain.info["tail_chunks"] == [], (compacted.info, plain.info)
+    assert compacted.info["photon_steps"] == plain.info["photon_steps"]
+    assert compacted.info["lane_steps"] == plain.info["lane_steps"], "compaction must not change how many steps the shard runs"
+    assert compacted.counts.keys() == plain.counts.keys() and compacted.stats.keys() == plain.stats.keys()
+    for name in compacted.counts:
+        np.testing.assert_array_equal(compacted.counts[name], plain.counts[name], err_msg=name)
+    for name in compacted.stats:
+        for a, b in zip(compacted.stats[name], plain.stats[name]):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-300, err_msg=name)
 
 
@@ -302,12 +309,3 @@ def test_the_padding_of_a_harvest_call_changes_no_bit(walk_spec, monkeypatch):
         digests.append(tally_digest(run_shard(spec, 0, members=(0.7,))))
         assert multiple == 1 or sum(p > 0 for p in padded) >= 3, "the harvests must have been padded"
     assert digests[0] == digests[1] == digests[2]
-
-
-def test_every_compiled_length_is_a_multiple_of_the_vector_width():
-    """Every length a compiled any-length kernel is called with is a multiple of the vector
-    width (lanes past the last multiple could round differently: workers.walk.kernels)."""
-    from workers.run import plan
-
-    assert plan.LANE_MULTIPLE == 16 and plan.CHUNK % plan.LANE_MULTIPLE == 0
-    assert all(plan.CHUNK // d % plan.LANE_MULTIPLE == 0 for d in (plan.TAIL_DIVISOR, *plan.DEEP_TAIL_DIVISORS))

@@ -63,7 +63,7 @@ def profile_shard(medium: str, estimator: str, photons: int, repeat: int = 3) ->
         spec = _spec(medium, estimator, photons)
         n_steps = ShardPlan.build(spec, 0).n_steps
         run_shard(_spec(medium, estimator, max(8, photons // 50)), 0)
-        run_shard(spec, 0)  # kernels of a full-size shard (tail chunks) loaded before timing
+        run_shard(spec, 0)  # a full-size shard first: its tail's lengths seen (each length's first call checks guards)
         runs = []
         for _ in range(repeat):
             totals: dict[str, list[float]] = {}

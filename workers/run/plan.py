@@ -26,15 +26,13 @@ from workers.walk.phase import phase_of
 from workers.walk.rng import stream_key, to_i32
 from workers.walk.walk import ConfigTable, WalkParams, compile_enabled
 
-__all__ = ["ShardPlan", "config_table", "chunk_count", "CHUNK", "VERTEX_CHUNK", "LANE_MULTIPLE", "HARVEST_DIVISOR"]
+__all__ = ["ShardPlan", "config_table", "chunk_count", "CHUNK", "VERTEX_CHUNK", "LANE_MULTIPLE", "TAIL_FILL", "HARVEST_DIVISOR"]
 
 CHUNK = 1 << 14  # lanes per call of the compiled step (the tail's chunks are shorter: one kernel serves every length); 2^15 ran M1 ~30 % slower on a 512 KiB-L2 machine
 EAGER_CHUNK = 1 << 12  # lanes per call on the eager path, which has no per-call overhead to hide
 CONNECT_CHUNK = 1 << 11  # lanes per call with connections: their kernel dominates, few photons run
 MAX_CHUNKS = 4  # 2^16 lanes in all: enough photons in flight to keep every chunk full
-TAIL_DIVISOR = 8  # exit walk: the last photons of a shard run in chunks of 1/TAIL_DIVISOR the lanes
-DEEP_TAIL_DIVISORS = (32, 128)  # ... and, once a tail has run DEEP_TAIL_AFTER calls, in chunks of 1/32, then 1/128 of the lanes
-DEEP_TAIL_AFTER = 64  # calls of the tail chunk (512 steps) before the deep tail's chunk may take over
+TAIL_FILL = 0.75  # the tail (nothing left to launch) is compacted to its running lanes once they fill no more than this of the stepped ones
 PHOTONS_PER_LANE = 32  # launches per lane before using more chunks: keeps the tail short
 VERTEX_CHUNK = 1 << 11  # vertices per connection kernel call
 EXIT_STEPS_PER_CALL = 8  # steps per compiled call between harvests (exit estimator)
@@ -77,9 +75,8 @@ class ShardPlan:
     estimators: what is tallied ("exits", "connections", "hybrid"); connect: vertices are
     connected to every bin (1 step per call); exits: exit events are binned (exit tally or the
     hybrid's multiple scattering); first_vertex: the hybrid's first-vertex connections.
-    chunk / n_lanes: lanes per step call and in all; tail_chunk: lanes of the shard's tail
-    (None: no tail chunk); deep_tail_chunks: lanes of a long tail's last photons, descending
-    (workers.run.shard); n_steps: steps per call.
+    chunk / n_lanes: lanes per step call and in all (a shard's tail steps fewer:
+    workers.run.shard); n_steps: steps per call.
     """
 
     spec: SimulationSpec
@@ -93,8 +90,6 @@ class ShardPlan:
     compiled: bool
     chunk: int
     n_lanes: int
-    tail_chunk: int | None
-    deep_tail_chunks: tuple[int, ...]
     params: WalkParams
     n_steps: int
     geo: ConnectionGeometry
@@ -153,10 +148,6 @@ class ShardPlan:
         return cls(
             spec=spec, shard_index=shard_index, cfgs=cfgs, table=table, layout=layout, start=start, stop=stop, estimators=estimators,
             compiled=compiled, chunk=chunk, n_lanes=n_lanes,
-            # A step costs the same for idle lanes: a shard's last photons, the longest paths, are
-            # stepped in one short chunk (compiled: a second shape) once they fit.  Not with
-            # connections, whose chunks are short already and whose kernel dominates.
-            tail_chunk=None if connect else chunk // TAIL_DIVISOR, deep_tail_chunks=() if connect else tuple(chunk // d for d in DEEP_TAIL_DIVISORS),
             params=params, n_steps=1 if connect else EXIT_STEPS_PER_CALL, geo=geo, exit_bins=exit_bins, first_vertex=first_vertex,
             entry_layout=entry_layout,
         )  # fmt: skip

@@ -9,7 +9,6 @@ before the run starts is its plan (:mod:`workers.run.plan`).
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, fields
 from typing import Callable
@@ -26,7 +25,7 @@ from workers.walk.harvest import harvest_fields, harvest_function
 from workers.walk.hybrid import ENTRY_OUTPUTS, harvest_entries_function
 from workers.walk.path_roulette import check_steps_per_call
 from workers.fold.reweight import MemberTallies, member_prefix
-from .plan import DEEP_TAIL_AFTER, HARVEST_DIVISOR, LANE_MULTIPLE, VERTEX_CHUNK, ShardPlan
+from .plan import HARVEST_DIVISOR, LANE_MULTIPLE, TAIL_FILL, VERTEX_CHUNK, ShardPlan
 from workers.fold.tally import BATCH_ESTIMATORS, BatchAccumulator, PhotonAccumulator, ShardTally, entry_square_keys
 from workers.walk.walk import EMPTY, EXITED, RUNNING, TRUNCATED, Lanes, step_function
 
@@ -39,6 +38,12 @@ def ordered_sum(values: np.ndarray) -> float:
     + v_1) + ...), where numpy's stores and reloads it (0.6 against 3.3 ns a value, and 4 in a
     bincount; tests/workers/test_tally.py checks the bits)."""
     return torch.cumsum(torch.from_numpy(values), 0)[-1].item() + 0.0 if values.size else 0.0
+
+
+def _tail_length(running: int, multiple: int = LANE_MULTIPLE) -> int:
+    """Lanes a tail of `running` photons is stepped in: the next multiple of the vector width
+    (no lane in the kernel's scalar remainder), at least one."""
+    return max(multiple, -(-running // multiple) * multiple)
 
 
 @dataclass(frozen=True)
@@ -100,15 +105,15 @@ class _Runner:
         self.vertex_buffer = VertexBuffer(VERTEX_CHUNK)
         # Lanes: [0, active * chunk) hold every running photon; chunks are views stepped one by one.
         self.lanes = Lanes.empty(plan.n_lanes + 1)  # the last: a scratch lane that pads harvest blocks, never stepped
-        self.chunk = plan.chunk
-        self.chunks = [self.lanes.view(a, a + self.chunk) for a in range(0, plan.n_lanes, self.chunk)]
-        self.active = len(self.chunks)
+        self.stepped = 0  # lanes [0, stepped) are stepped, in chunks of at most plan.chunk (set_stepped)
+        self.chunks: list[Lanes] = []
+        self.offsets: list[int] = []  # each chunk's first lane
+        self.set_stepped(plan.n_lanes)
         self.next_launch = 0
         self.launch = torch.tensor([plan.start, 0, plan.n_launch, plan.cfgs.n], dtype=torch.int64)  # the harvest's launch numbers
         self.n_valid = torch.zeros((), dtype=torch.int64)  # the real lanes of a harvest block
-        self.tail_lanes = None  # photons still running when the tail chunk took over
-        self.tail_calls = 0  # rounds of step calls since then
-        self.tail_chunks: list[int] = []  # the tail chunks stepped, in order
+        self.tail_lanes = None  # photons still running at the tail's first compaction
+        self.tail_chunks: list[int] = []  # the lanes stepped after each compaction of the tail, in order
 
     # -- lanes --------------------------------------------------------------------------------
     def finish_and_refill(self, idx: torch.Tensor, finished: bool = True) -> tuple[int, int]:
@@ -167,52 +172,45 @@ class _Runner:
         """Launch the first photons into every lane (all EMPTY); returns how many were launched."""
         return self.finish_and_refill(torch.arange(self.plan.n_lanes), finished=False)[1]
 
-    def tail_target(self, running: int) -> int | None:
-        """The tail chunk the running lanes should move to (nothing left to launch and they fit),
-        or None: once the tail chunk has run DEEP_TAIL_AFTER calls, the smallest of the deep
-        tail's chunks that holds them, else the tail chunk.  A long tail -- an albedo-1 walk's
-        last few hundred paths, stepped for tens of thousands of steps -- otherwise steps mostly
-        idle lanes; a short one never waits that long.  (Every chunk length is stepped by the same
-        compiled kernel: workers.walk.kernels.compile_kernel's any_length.)"""
-        plan = self.plan
-        if self.next_launch < plan.n_launch:
-            return None
-        deep = plan.deep_tail_chunks[::-1] if self.tail_calls >= DEEP_TAIL_AFTER else ()
-        for size in (*deep, plan.tail_chunk):  # the smallest that holds them
-            if size is not None and size < self.chunk and running <= size:
-                return size
-        return None
+    def set_stepped(self, n: int) -> None:
+        """Step lanes [0, n) from now on (n a multiple of LANE_MULTIPLE): chunks of plan.chunk
+        lanes, the last one shorter (one compiled kernel serves every length:
+        workers.walk.kernels.compile_kernel's any_length)."""
+        self.stepped = n
+        self.offsets = list(range(0, n, self.plan.chunk))
+        self.chunks = [self.lanes.view(a, min(a + self.plan.chunk, n)) for a in self.offsets]
 
     def shrinkable(self, running: int) -> bool:
-        """Whether compact() would step fewer lanes: nothing is left to launch and the running
-        lanes fit in fewer chunks, or in a tail chunk (tail_target)."""
-        if self.next_launch < self.plan.n_launch:
+        """Whether compact() would run now: nothing is left to launch and no more than TAIL_FILL
+        of the stepped lanes hold a running photon (never with connections, whose chunks are
+        short already and whose kernel dominates)."""
+        plan = self.plan
+        if self.next_launch < plan.n_launch or plan.connect:
             return False
-        return running <= (self.active - 1) * self.chunk or self.tail_target(running) is not None
+        return running <= TAIL_FILL * self.stepped and _tail_length(running) < self.stepped
 
     def compact(self, running: int) -> None:
-        """Tail of the shard (nothing left to launch): move the running lanes, in lane order, to
-        the front so that only ceil(running / chunk) chunks are stepped, and once they fit in
-        a tail chunk (tail_target), step that alone."""
+        """Tail of the shard (nothing left to launch): once the running photons fill no more than
+        TAIL_FILL of the stepped lanes, move them, in lane order, to the front and step only
+        those lanes (rounded up to LANE_MULTIPLE).  A step costs the same for idle lanes, and
+        the tail is long where paths are: an albedo-1 walk's lanes drained for thousands of steps
+        at ~45 % occupancy in fixed chunks (BENCHMARKS.md).  Moving a photon changes nothing of
+        its path (its stream is its own), only where in the order of a harvest's records it is."""
         if not self.shrinkable(running):
             return
-        n = self.active * self.chunk
+        n = self.stepped
         idx = torch.nonzero(self.lanes.status[:n] == RUNNING).squeeze(1)
         for t in self.lanes.tensors():
             t[: len(idx)] = t[idx]
         self.lanes.status[len(idx) : n] = EMPTY
-        size = self.tail_target(running)
-        if size is not None:
-            if self.tail_lanes is None:
-                self.tail_lanes = running
-            self.tail_chunks.append(size)
-            self.chunk = size
-            self.chunks = [self.lanes.view(0, self.chunk)]
-        self.active = max(1, math.ceil(running / self.chunk))
+        if self.tail_lanes is None:
+            self.tail_lanes = running
+        self.tail_chunks.append(_tail_length(running))
+        self.set_stepped(self.tail_chunks[-1])
 
     def harvest(self, running: int) -> int:
         """Tally the lanes that finished, refill them; returns the lanes running afterwards."""
-        st = self.lanes.status[: self.active * self.chunk].numpy()  # numpy's flatnonzero: ~2.5x faster than torch.nonzero here
+        st = self.lanes.status[: self.stepped].numpy()  # numpy's flatnonzero: ~2.5x faster than torch.nonzero here
         launching = self.next_launch < self.plan.n_launch
         # While photons are left to launch every lane not running is refilled; afterwards only the
         # finished ones are recorded.  Either way every lane harvested here holds a finished
@@ -318,14 +316,13 @@ class _Runner:
             check_steps_per_call(plan.params.roulette[0], plan.n_steps)
         while running > 0:
             running = finished = 0
-            for k in range(self.active):
-                counts, vertex = self.kernels.step(self.chunks[k])
+            for chunk, offset in zip(self.chunks, self.offsets):
+                counts, vertex = self.kernels.step(chunk)
                 now_running, now_finished = counts.tolist()  # one conversion: a tail runs ~10^4 calls
                 running, finished = running + now_running, finished + now_finished
                 if plan.connect:
-                    self.collect_vertices(vertex, k * self.chunk)
+                    self.collect_vertices(vertex, offset)
             self.count.steps += plan.n_steps
-            self.tail_calls += self.tail_lanes is not None
             if finished >= harvest_at or (running == 0 and finished > 0) or (finished and self.shrinkable(running)):
                 running = self.harvest(running)
         self.flush_vertices(force=True)
