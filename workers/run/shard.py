@@ -182,10 +182,8 @@ class _Runner:
 
     def shrinkable(self, running: int) -> bool:
         """Whether compact() would run now: nothing is left to launch and no more than TAIL_FILL
-        of the stepped lanes hold a running photon (never with connections, whose chunks are
-        short already and whose kernel dominates)."""
-        plan = self.plan
-        if self.next_launch < plan.n_launch or plan.connect:
+        of the stepped lanes hold a running photon."""
+        if self.next_launch < self.plan.n_launch:
             return False
         return running <= TAIL_FILL * self.stepped and _tail_length(running) < self.stepped
 
