@@ -202,8 +202,8 @@ class _Runner:
             t[: len(idx)] = t[idx]
         self.lanes.status[len(idx) : n] = EMPTY
         if self.tail_lanes is None:
-            self.tail_lanes = running
-        self.tail_chunks.append(_tail_length(running))
+            self.tail_lanes = len(idx)
+        self.tail_chunks.append(_tail_length(len(idx)))  # every lane moved is stepped, whatever the caller counted
         self.set_stepped(self.tail_chunks[-1])
 
     def harvest(self, running: int) -> int:
