@@ -103,7 +103,7 @@ class _Runner:
             self.members = MemberTallies(members, walked.pop(), plan.table.w0.double().numpy(), photon_estimators,
                                          plan.cfgs.n, plan.layout.shape)  # fmt: skip
         self.vertex_buffer = VertexBuffer(VERTEX_CHUNK)
-        # Lanes: [0, active * chunk) hold every running photon; chunks are views stepped one by one.
+        # Lanes: [0, stepped) hold every running photon; chunks are views stepped one by one.
         self.lanes = Lanes.empty(plan.n_lanes + 1)  # the last: a scratch lane that pads harvest blocks, never stepped
         self.stepped = 0  # lanes [0, stepped) are stepped, in chunks of at most plan.chunk (set_stepped)
         self.chunks: list[Lanes] = []
@@ -111,7 +111,7 @@ class _Runner:
         self.set_stepped(plan.n_lanes)
         self.next_launch = 0
         self.launch = torch.tensor([plan.start, 0, plan.n_launch, plan.cfgs.n], dtype=torch.int64)  # the harvest's launch numbers
-        self.n_valid = torch.zeros((), dtype=torch.int64)  # the real lanes of a harvest block
+        self.n_valid = torch.zeros((), dtype=torch.int64)  # the real lanes of a harvest call
         self.tail_lanes = None  # photons still running at the tail's first compaction
         self.tail_chunks: list[int] = []  # the lanes stepped after each compaction of the tail, in order
 
@@ -240,7 +240,7 @@ class _Runner:
         counts, by which the members reweight (they take the m real photons: their group sums are
         pairwise, whose association more terms would change, and they copy their inputs anyway)."""
         flat2, g, s, key, weight = (v.numpy() for v in entries)
-        if nscat is not None:  # cut to the real photons: the members copy their inputs anyway, and sum groups pairwise
+        if nscat is not None:
             f = flat2[:m]
             self.members.add_hybrid(f, g[:m], s[:m], entry_square_keys(f, self.photons.layout), nscat[:m].numpy())
         if m < len(flat2):

@@ -303,7 +303,7 @@ def harvest_with_entries(idx, n_valid, lanes: Lanes, table, launch, bins: ExitBi
     One pass gathers the lanes' fields once where the entries and the harvest each gathered
     them, and makes one call instead of two.  Its caller tallies the entries only where every
     lane of idx holds a finished photon, which outside the shard's first fill is every harvest
-    (workers.run.shard); the entries of padding lanes are cut off."""
+    (workers.run.shard), which also gives the padding lanes' entries weight 0."""
     entries = photon_entries(idx, lanes, bins, geo, lay)
     return (*entries, *harvest_block(idx, n_valid, lanes, table, launch, bins, exits=False, members=members))
 
